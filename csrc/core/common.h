@@ -1,0 +1,79 @@
+// Small vector types and the host/device qualifier shared by every kernel.
+// Everything under csrc/core/ is header-only and compiles both with the host
+// compiler (CPU path) and with nvcc (CUDA path): one geometry, two backends.
+#pragma once
+
+#include <cstdint>
+
+#if defined(__CUDACC__)
+#define TV_HD __host__ __device__ __forceinline__
+#else
+#define TV_HD inline
+#endif
+
+namespace torchvor {
+namespace core {
+
+template <typename T>
+struct Vec3 {
+  T x, y, z;
+};
+
+template <typename T>
+struct Plane {  // inside iff dot(normal, x) + offset > 0
+  Vec3<T> normal;
+  T offset;
+};
+
+template <typename T>
+TV_HD Vec3<T> make_vec3(T x, T y, T z) { return Vec3<T>{x, y, z}; }
+template <typename T>
+TV_HD Vec3<T> operator+(Vec3<T> a, Vec3<T> b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+template <typename T>
+TV_HD Vec3<T> operator-(Vec3<T> a, Vec3<T> b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+template <typename T>
+TV_HD Vec3<T> operator*(T s, Vec3<T> a) { return {s * a.x, s * a.y, s * a.z}; }
+template <typename T>
+TV_HD T dot(Vec3<T> a, Vec3<T> b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+template <typename T>
+TV_HD Vec3<T> cross(Vec3<T> a, Vec3<T> b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+template <typename T>
+TV_HD T det3(Vec3<T> a, Vec3<T> b, Vec3<T> c) { return dot(a, cross(b, c)); }
+
+template <typename T>
+TV_HD Vec3<T> load_vec3(const T* p) { return {p[0], p[1], p[2]}; }
+template <typename T>
+TV_HD void store_vec3(T* p, Vec3<T> v) { p[0] = v.x; p[1] = v.y; p[2] = v.z; }
+
+// Squared distance rounded identically on host and device: nvcc would fuse the
+// multiply-adds (FMA) and the host compiler would not, and kNN promises bitwise
+// identical distances (hence identical tie-breaking) on CPU and CUDA.
+TV_HD float mul_rn(float a, float b) {
+#if defined(__CUDA_ARCH__)
+  return __fmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+TV_HD double mul_rn(double a, double b) {
+#if defined(__CUDA_ARCH__)
+  return __dmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+template <typename T>
+TV_HD T squared_distance(Vec3<T> a, Vec3<T> b) {
+  const T dx = a.x - b.x, dy = a.y - b.y, dz = a.z - b.z;
+  return (mul_rn(dx, dx) + mul_rn(dy, dy)) + mul_rn(dz, dz);
+}
+
+template <typename T>
+TV_HD T min_of(T a, T b) { return a < b ? a : b; }
+template <typename T>
+TV_HD T max_of(T a, T b) { return a < b ? b : a; }
+
+}  // namespace core
+}  // namespace torchvor

@@ -1,0 +1,249 @@
+// A convex cell clipped by half-spaces, stored in dual form (paper §3.2-3.5).
+//
+// Coordinates are local to the seed (the seed is the origin), so that large
+// offsets cost no precision. Planes: dot(normal, x) + offset > 0 inside. A
+// vertex of the cell is a dual triangle (a, b, c) of the three plane ids that
+// meet there; its position is cached when the triangle is created. Triangles
+// are oriented consistently, which the integrals (§3.5) rely on.
+#pragma once
+
+#include "common.h"
+#include "status.h"
+
+namespace torchvor {
+namespace core {
+
+// Relative tolerance of the clipping predicate: a vertex is clipped only if it
+// lies more than tolerance * |r|^2 outside the bisector of a neighbour at r.
+// Points on a plane are kept, so cospherical configurations (lattices) and
+// near-coincident vertices resolve the same way from every triangle.
+template <typename T> struct ClipTolerance;
+template <> struct ClipTolerance<float> { static constexpr float value = 2e-6f; };
+template <> struct ClipTolerance<double> { static constexpr double value = 1e-13; };
+
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
+struct ConvexCell {
+  static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
+  static constexpr uint8_t kNone = 255;
+
+  Plane<T> plane[MAX_PLANES];
+  uint8_t triangle[MAX_TRIANGLES][3];
+  Vec3<T> vertex[MAX_TRIANGLES];
+  int32_t num_planes;
+  int32_t num_triangles;
+  T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
+  bool radius_stale; // vertices were removed since radius2_bound was exact
+  T tolerance;       // relative tolerance of the clipping predicate
+  int8_t status;
+
+  // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
+  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance) {
+    plane[0] = {{T(1), T(0), T(0)}, -lo.x};
+    plane[1] = {{T(-1), T(0), T(0)}, hi.x};
+    plane[2] = {{T(0), T(1), T(0)}, -lo.y};
+    plane[3] = {{T(0), T(-1), T(0)}, hi.y};
+    plane[4] = {{T(0), T(0), T(1)}, -lo.z};
+    plane[5] = {{T(0), T(0), T(-1)}, hi.z};
+    num_planes = 6;
+    const uint8_t box[8][3] = {{2, 5, 0}, {5, 3, 0}, {1, 5, 2}, {5, 1, 3},
+                               {4, 2, 0}, {4, 0, 3}, {2, 4, 1}, {4, 3, 1}};
+    num_triangles = 8;
+    radius2_bound = T(0);
+    for (int t = 0; t < 8; ++t) {
+      set_triangle(t, box[t][0], box[t][1], box[t][2]);
+      radius2_bound = max_of(radius2_bound, dot(vertex[t], vertex[t]));
+    }
+    radius_stale = false;
+    tolerance = relative_tolerance;
+    status = kSuccess;
+  }
+
+  // Intersection point of three planes (Cramer's rule).
+  TV_HD Vec3<T> intersect(int a, int b, int c) const {
+    const Plane<T>& pa = plane[a];
+    const Plane<T>& pb = plane[b];
+    const Plane<T>& pc = plane[c];
+    const Vec3<T> bc = cross(pb.normal, pc.normal);
+    const Vec3<T> ca = cross(pc.normal, pa.normal);
+    const Vec3<T> ab = cross(pa.normal, pb.normal);
+    const T det = dot(pa.normal, bc);
+    const T scale = T(-1) / det;
+    return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
+  }
+
+  TV_HD void set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
+    triangle[t][0] = a;
+    triangle[t][1] = b;
+    triangle[t][2] = c;
+    vertex[t] = intersect(a, b, c);
+  }
+
+  // Exact squared radius of the ball around the seed holding the cell.
+  TV_HD T radius2() {
+    if (radius_stale) {
+      T r2 = T(0);
+      for (int t = 0; t < num_triangles; ++t) r2 = max_of(r2, dot(vertex[t], vertex[t]));
+      radius2_bound = r2;
+      radius_stale = false;
+    }
+    return radius2_bound;
+  }
+
+  // Radius of security (paper §3.1): a neighbour farther than twice the cell's
+  // radius cannot cut it, nor can any later (farther) neighbour.
+  TV_HD bool security_radius_reached(T neighbor_dist2) {
+    const T slack = T(1) + T(64) * tolerance;
+    if (neighbor_dist2 > T(4) * slack * radius2_bound) return true;  // cheap bound first
+    return radius_stale && neighbor_dist2 > T(4) * slack * radius2();
+  }
+
+  // Clip by the bisector of the seed (origin) and a neighbour at `r` (paper
+  // §3.3, Alg. 3). Returns false and sets `status` when the cell cannot be
+  // represented (array overflow) or the predicates were inconsistent.
+  TV_HD bool clip_by_bisector(Vec3<T> r) {
+    const T r2 = dot(r, r);
+    const Plane<T> p = {{-r.x, -r.y, -r.z}, T(0.5) * r2};
+    const T threshold = -tolerance * r2;
+    // Move the clipped triangles to the end: [0, kept) stays, [kept, n) is R.
+    int kept = num_triangles;
+    for (int t = 0; t < kept;) {
+      if (dot(p.normal, vertex[t]) + p.offset < threshold) {
+        --kept;
+        swap_triangles(t, kept);
+      } else {
+        ++t;
+      }
+    }
+    if (kept == num_triangles) return true;  // the plane misses the cell
+    if (num_planes == MAX_PLANES) compact_planes();
+    if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
+    const int new_plane = num_planes++;
+    plane[new_plane] = p;
+    // Boundary of the removed disc R (Alg. 4): the directed edges of R whose
+    // reverse is not in R, stored as a successor map over plane ids.
+    uint8_t next[MAX_PLANES];
+    for (int q = 0; q < num_planes; ++q) next[q] = kNone;
+    int boundary_length = 0;
+    uint8_t start = kNone;
+    for (int t = kept; t < num_triangles; ++t) {
+      for (int e = 0; e < 3; ++e) {
+        const uint8_t from = triangle[t][e], to = triangle[t][(e + 1) % 3];
+        if (edge_in_removed(to, from, kept)) continue;  // interior edge of R
+        if (next[from] != kNone) return fail(kBoundaryError);  // not a simple cycle
+        next[from] = to;
+        start = from;
+        ++boundary_length;
+      }
+    }
+    if (boundary_length < 3) return fail(kBoundaryError);
+    if (kept + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
+    // Close the hole with a fan of triangles (s, t, p) along the boundary cycle.
+    num_triangles = kept;
+    uint8_t from = start;
+    for (int e = 0; e < boundary_length; ++e) {
+      const uint8_t to = next[from];
+      if (to == kNone) return fail(kBoundaryError);
+      set_triangle(num_triangles, from, to, static_cast<uint8_t>(new_plane));
+      radius2_bound = max_of(radius2_bound, dot(vertex[num_triangles], vertex[num_triangles]));
+      ++num_triangles;
+      from = to;
+    }
+    if (from != start) return fail(kBoundaryError);  // more than one cycle
+    radius_stale = true;
+    return true;
+  }
+
+  // Volume, first moment and second moment (integral of |x|^2) of the cell,
+  // all relative to the seed, from six signed tetrahedra per vertex (§3.5):
+  // seed, foot of the seed on a plane, foot on an edge line, the vertex.
+  TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment) const {
+    T six_volume = T(0);
+    Vec3<T> m1 = {T(0), T(0), T(0)};
+    T m2 = T(0);
+    for (int t = 0; t < num_triangles; ++t) {
+      const Vec3<T> v = vertex[t];
+      for (int e = 0; e < 3; ++e) {
+        const int a = triangle[t][e], b = triangle[t][(e + 1) % 3];
+        const Vec3<T> edge_foot = line_foot(a, b);
+        add_tetrahedron(plane_foot(a), edge_foot, v, T(1), six_volume, m1, m2);
+        add_tetrahedron(plane_foot(b), edge_foot, v, T(-1), six_volume, m1, m2);
+      }
+    }
+    volume = six_volume / T(6);
+    first_moment = (T(1) / T(24)) * m1;
+    second_moment = m2 / T(120);
+  }
+
+ private:
+  TV_HD bool fail(int8_t code) {
+    status = code;
+    return false;
+  }
+
+  TV_HD void swap_triangles(int s, int t) {
+    for (int e = 0; e < 3; ++e) {
+      const uint8_t id = triangle[s][e];
+      triangle[s][e] = triangle[t][e];
+      triangle[t][e] = id;
+    }
+    const Vec3<T> v = vertex[s];
+    vertex[s] = vertex[t];
+    vertex[t] = v;
+  }
+
+  TV_HD bool edge_in_removed(uint8_t from, uint8_t to, int removed_begin) const {
+    for (int t = removed_begin; t < num_triangles; ++t) {
+      const uint8_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
+      if ((a == from && b == to) || (b == from && c == to) || (c == from && a == to)) return true;
+    }
+    return false;
+  }
+
+  // Drop planes that no vertex uses any more and renumber the rest, so that a
+  // long clipping sequence does not overflow the plane array with dead planes.
+  TV_HD void compact_planes() {
+    uint8_t renumber[MAX_PLANES];
+    for (int q = 0; q < num_planes; ++q) renumber[q] = kNone;
+    for (int t = 0; t < num_triangles; ++t)
+      for (int e = 0; e < 3; ++e) renumber[triangle[t][e]] = 0;
+    int live = 0;
+    for (int q = 0; q < num_planes; ++q) {
+      if (renumber[q] == kNone) continue;
+      plane[live] = plane[q];
+      renumber[q] = static_cast<uint8_t>(live++);
+    }
+    for (int t = 0; t < num_triangles; ++t)
+      for (int e = 0; e < 3; ++e) triangle[t][e] = renumber[triangle[t][e]];
+    num_planes = live;
+  }
+
+  // Orthogonal projection of the seed (origin) onto plane a.
+  TV_HD Vec3<T> plane_foot(int a) const {
+    const Plane<T>& p = plane[a];
+    return (-p.offset / dot(p.normal, p.normal)) * p.normal;
+  }
+
+  // Orthogonal projection of the seed onto the line where planes a, b meet.
+  TV_HD Vec3<T> line_foot(int a, int b) const {
+    const Plane<T>& pa = plane[a];
+    const Plane<T>& pb = plane[b];
+    const Vec3<T> direction = cross(pa.normal, pb.normal);
+    const T scale = T(-1) / dot(direction, direction);
+    return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
+  }
+
+  // Signed tetrahedron (seed, f, e, v): accumulate 6 * volume, 24 * first
+  // moment and 120 * second moment (integral of |x|^2 over a tetrahedron with
+  // a vertex at the origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2)).
+  TV_HD static void add_tetrahedron(Vec3<T> f, Vec3<T> e, Vec3<T> v, T sign, T& six_volume,
+                                    Vec3<T>& m1, T& m2) {
+    const T six_vol = sign * det3(f, e, v);
+    const Vec3<T> sum = f + e + v;
+    six_volume += six_vol;
+    m1 = m1 + six_vol * sum;
+    m2 += six_vol * (dot(f, f) + dot(e, e) + dot(v, v) + dot(sum, sum));
+  }
+};
+
+}  // namespace core
+}  // namespace torchvor

@@ -1,0 +1,83 @@
+// One Voronoi cell from its sorted neighbour list (paper §3, Alg. 2).
+#pragma once
+
+#include "convex_cell.h"
+
+namespace torchvor {
+namespace core {
+
+template <typename T>
+struct CellIntegrals {
+  T volume;
+  Vec3<T> centroid;    // absolute coordinates
+  T second_moment;     // integral over the cell of |x - seed|^2
+  int8_t status;
+  int32_t neighbors;   // neighbours consumed before the radius of security
+};
+
+// `neighbors` lists k indices sorted by distance to the seed, padded with -1
+// when the whole batch element has fewer points. Coordinates are read as io_t
+// and computed in T (T may be wider, for the float64 recovery pass).
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename io_t>
+TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& cell,
+                                    const io_t* points, int32_t seed_index,
+                                    const int32_t* neighbors, int32_t k, const io_t* box,
+                                    T relative_tolerance) {
+  const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
+                        T(points[3 * seed_index + 2])};
+  const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
+  const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
+  cell.init_box(lo - seed, hi - seed, relative_tolerance);
+
+  CellIntegrals<T> out;
+  out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
+  out.neighbors = k;
+  for (int32_t n = 0; n < k; ++n) {
+    const int32_t j = neighbors[n];
+    if (j < 0) {  // every point of the batch element has been used
+      out.status = kSuccess;
+      out.neighbors = n;
+      break;
+    }
+    const Vec3<T> r = {T(points[3 * j]) - seed.x, T(points[3 * j + 1]) - seed.y,
+                       T(points[3 * j + 2]) - seed.z};
+    const T r2 = dot(r, r);
+    if (r2 == T(0)) {
+      // Exact duplicate: the lowest index keeps the cell, the others are empty.
+      if (j < seed_index) {
+        out.volume = T(0);
+        out.centroid = seed;
+        out.second_moment = T(0);
+        out.status = kDuplicate;
+        out.neighbors = n + 1;
+        return out;
+      }
+      continue;
+    }
+    if (cell.security_radius_reached(r2)) {
+      out.status = kSuccess;
+      out.neighbors = n;
+      break;
+    }
+    if (!cell.clip_by_bisector(r)) {
+      out.status = cell.status;
+      out.neighbors = n + 1;
+      break;
+    }
+  }
+  if (out.status != kSuccess) {
+    const T nan = T(0) / T(0);
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
+    return out;
+  }
+  Vec3<T> first_moment;
+  cell.integrate(out.volume, first_moment, out.second_moment);
+  // The centroid of an empty (zero-volume) cell is its seed.
+  out.centroid = out.volume > T(0) ? seed + (T(1) / out.volume) * first_moment : seed;
+  return out;
+}
+
+}  // namespace core
+}  // namespace torchvor

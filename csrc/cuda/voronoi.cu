@@ -1,0 +1,20 @@
+#include <c10/cuda/CUDAGuard.h>
+#include <torch/library.h>
+
+#include "../ops/voronoi.h"
+#include "exec.cuh"
+
+namespace torchvor {
+namespace cuda {
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(
+    const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
+    int64_t k, int64_t memory_budget) {
+  const c10::cuda::CUDAGuard guard(points.device());
+  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget);
+}
+
+TORCH_LIBRARY_IMPL(torchvor, CUDA, m) { m.impl("voronoi_cells", &voronoi_cells_cuda); }
+
+}  // namespace cuda
+}  // namespace torchvor

@@ -1,0 +1,211 @@
+// torchvor::voronoi_cells, shared by the CPU and CUDA backends.
+//
+// Cells are computed chunk by chunk (kNN into a bounded buffer, then clipping),
+// so no N x k neighbour array ever exists. Failed cells are retried with more
+// neighbours, larger arrays and finally float64 with a looser predicate
+// tolerance; a cell that fails every pass keeps its status and NaN outputs.
+#pragma once
+
+#include <ATen/ATen.h>
+
+#include <algorithm>
+#include <tuple>
+
+#include "../core/voronoi_cell.h"
+#include "checks.h"
+#include "grid.h"
+#include "knn.h"
+
+namespace torchvor {
+namespace ops {
+
+// Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
+template <typename io_t, typename T, int MAX_PLANES>
+struct ClipFunctor {
+  const io_t* points;          // (N, 3)
+  const io_t* box;             // (B, 2, 3)
+  const int64_t* batch;        // (N,) or nullptr
+  const int32_t* cells;        // (chunk,) cell (= point) ids
+  const int32_t* neighbors;    // (chunk, k)
+  int32_t k;
+  T tolerance;
+  io_t* volume;                // (N,)
+  io_t* centroid;              // (N, 3)
+  io_t* second_moment;         // (N,)
+  int8_t* status;              // (N,)
+  int32_t* num_neighbors;      // (N,)
+
+  TV_HD void operator()(int64_t t) const {
+    const int32_t i = cells[t];
+    const int64_t b = batch ? batch[i] : 0;
+    core::ConvexCell<T, MAX_PLANES, 2 * MAX_PLANES> cell;
+    const core::CellIntegrals<T> out = core::compute_cell(
+        cell, points, i, neighbors + t * int64_t(k), k, box + 6 * b, tolerance);
+    volume[i] = static_cast<io_t>(out.volume);
+    centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
+    centroid[3 * int64_t(i) + 1] = static_cast<io_t>(out.centroid.y);
+    centroid[3 * int64_t(i) + 2] = static_cast<io_t>(out.centroid.z);
+    second_moment[i] = static_cast<io_t>(out.second_moment);
+    status[i] = out.status;
+    num_neighbors[i] = out.neighbors;
+  }
+};
+
+// How hard a pass tries: neighbours per cell, array tier, precision.
+struct PassSettings {
+  int64_t k;
+  int tier;            // 0, 1, 2: at most 32, 64, 160 planes
+  bool float64;        // compute in double even for float32 input
+  bool loose;          // 1000x larger predicate tolerance (last resort)
+};
+
+struct VoronoiOutputs {
+  at::Tensor volume, centroid, second_moment, status, num_neighbors;
+};
+
+template <typename Exec, typename io_t, typename T, int MAX_PLANES>
+void clip_chunk(const at::Tensor& points, const at::Tensor& box,
+                const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                const at::Tensor& neighbors, bool loose, VoronoiOutputs& out) {
+  const T tolerance = core::ClipTolerance<T>::value * (loose ? T(1000) : T(1));
+  ClipFunctor<io_t, T, MAX_PLANES> functor{
+      points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
+      batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+      cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
+      static_cast<int32_t>(neighbors.size(1)), tolerance,
+      out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
+      out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
+      out.num_neighbors.data_ptr<int32_t>()};
+  Exec::for_each(cells.size(0), functor);
+}
+
+template <typename Exec, typename io_t, typename T>
+void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
+                     const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                     const at::Tensor& neighbors, const PassSettings& pass, VoronoiOutputs& out) {
+  switch (pass.tier) {
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, pass.loose, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, pass.loose, out); break;
+    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, pass.loose, out); break;
+  }
+}
+
+// One pass over `cells` (int32 point ids), in chunks of bounded memory.
+template <typename Exec, typename io_t>
+void run_pass(const at::Tensor& points, const at::Tensor& box,
+              const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
+              const PassSettings& pass, int64_t memory_budget, VoronoiOutputs& out) {
+  const int64_t bytes_per_cell = pass.k * int64_t(sizeof(io_t) + sizeof(int32_t));
+  const int64_t chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
+  for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
+    const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
+    const int64_t m = part.size(0);
+    at::Tensor heap_dist = at::empty({m, pass.k}, points.options());
+    at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
+    KnnFunctor<io_t> knn{grid.view<io_t>(),
+                         points.data_ptr<io_t>(),
+                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+                         part.data_ptr<int32_t>(),
+                         heap_dist.data_ptr<io_t>(),
+                         neighbors.data_ptr<int32_t>(),
+                         static_cast<int32_t>(pass.k),
+                         /*exclude_self=*/true,
+                         /*row_by_query=*/false};
+    Exec::for_each(m, knn);
+    if (pass.float64 || std::is_same<io_t, double>::value) {
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass, out);
+    } else {
+      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass, out);
+    }
+  }
+}
+
+template <typename Exec>
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_forward(
+    const at::Tensor& points_in, const at::Tensor& box_in, const c10::optional<at::Tensor>& batch_in,
+    int64_t k, int64_t memory_budget) {
+  check_points(points_in, "points");
+  check_same_device(points_in, "points", box_in, "box");
+  TORCH_CHECK_TYPE(box_in.scalar_type() == points_in.scalar_type(),
+                   "torchvor: box must have the dtype of points (", points_in.scalar_type(),
+                   "), got ", box_in.scalar_type());
+  TORCH_CHECK_VALUE(box_in.dim() == 3 && box_in.size(1) == 2 && box_in.size(2) == 3,
+                    "torchvor: box must have shape (B, 2, 3), got ", box_in.sizes());
+  TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
+  TORCH_CHECK_VALUE(memory_budget >= 1, "torchvor: memory_budget must be positive");
+  const int64_t n = points_in.size(0);
+  const int64_t num_boxes = box_in.size(0);
+  const int64_t batches = check_batch(batch_in, n, points_in, "batch");
+  TORCH_CHECK_VALUE(batch_in.has_value() || num_boxes == 1,
+                    "torchvor: without a batch vector, box must have shape (1, 2, 3)");
+  TORCH_CHECK_VALUE(batches <= num_boxes, "torchvor: batch refers to ", batches,
+                    " point clouds but box holds ", num_boxes);
+  check_finite(points_in, "points");
+  check_finite(box_in, "box");
+  const at::Tensor points = points_in.contiguous();
+  const at::Tensor box = box_in.contiguous();
+  const c10::optional<at::Tensor> batch =
+      batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
+  TORCH_CHECK_VALUE((box.select(1, 0) <= box.select(1, 1)).all().item<bool>(),
+                    "torchvor: box must satisfy lo <= hi on every axis");
+
+  VoronoiOutputs out;
+  const auto options = points.options();
+  out.volume = at::full({n}, NAN, options);
+  out.centroid = at::full({n, 3}, NAN, options);
+  out.second_moment = at::full({n}, NAN, options);
+  out.status = at::full({n}, int64_t(core::kNotComputed), options.dtype(at::kChar));
+  out.num_neighbors = at::zeros({n}, options.dtype(at::kInt));
+  if (n == 0) {
+    return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
+  }
+  {  // every point inside its box
+    at::Tensor lo = box.select(1, 0), hi = box.select(1, 1);
+    if (batch.has_value()) {
+      lo = lo.index_select(0, *batch);
+      hi = hi.index_select(0, *batch);
+    }
+    TORCH_CHECK_VALUE(((points >= lo) & (points <= hi)).all().item<bool>(),
+                      "torchvor: points must lie inside box (lo <= p <= hi)");
+  }
+
+  const Grid grid = build_grid(points, batch, num_boxes, 4.0);
+  // The largest batch element bounds the useful k: a query that asks for as
+  // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
+  const int64_t largest_cloud = batch.has_value()
+                                    ? at::bincount(*batch, {}, num_boxes).max().item<int64_t>()
+                                    : n;
+  PassSettings pass{std::min(k, largest_cloud), 0, false, false};
+  at::Tensor pending = grid.sorted_index;  // grid order keeps neighbouring cells together
+  const bool is_double = points.scalar_type() == at::kDouble;
+  for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
+    AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
+      run_pass<Exec, scalar_t>(points, box, batch, grid, pending, pass, memory_budget, out);
+    });
+    const at::Tensor status = out.status.index_select(0, pending);
+    const at::Tensor failed = (status != int64_t(core::kSuccess)) & (status != int64_t(core::kDuplicate));
+    pending = pending.masked_select(failed);
+    if (pending.size(0) == 0) break;
+    // Escalate what the failures ask for; stop when nothing is left to raise.
+    const at::Tensor failed_status = status.masked_select(failed);
+    const auto any = [&](core::CellStatus code) {
+      return (failed_status == int64_t(code)).any().item<bool>();
+    };
+    PassSettings next = pass;
+    if (any(core::kSecurityRadiusNotReached)) next.k = std::min(2 * pass.k, largest_cloud);
+    if (any(core::kTooManyPlanes) || any(core::kTooManyVertices)) next.tier = std::min(pass.tier + 1, 2);
+    if (any(core::kBoundaryError)) {
+      if (pass.float64 || is_double) next.loose = true;
+      next.float64 = true;
+    }
+    if (next.k == pass.k && next.tier == pass.tier && next.float64 == pass.float64 &&
+        next.loose == pass.loose) {
+      break;
+    }
+    pass = next;
+  }
+  return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
+}
+
+}  // namespace ops
+}  // namespace torchvor
