@@ -9,23 +9,23 @@ REPO=$(cd "$(dirname "$0")/.." && pwd)
 cd "$REPO"
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TORCHVOR_FORCE_CUDA=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
-echo "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)" | tee -a "$OUT/gpu.txt"
+echo "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}" | tee -a "$OUT/gpu.txt"
 start=$(date +%s)
-pip install --no-build-isolation --no-deps --no-index -e . >"$OUT/build.log" 2>&1 || { tail -60 "$OUT/build.log"; exit 1; }
+python3 -m pip install --no-build-isolation --no-deps --no-index -e . >"$OUT/build.log" 2>&1 || { tail -60 "$OUT/build.log"; exit 1; }
 echo "build: $(( $(date +%s) - start )) s"
 status=0
 for step in "${@:-smoke}"; do
   case "$step" in
-    smoke) python benchmarks/gpu_smoke.py --sizes 100000,1000000,10000000 2>&1 | tee "$OUT/smoke.log" || status=1 ;;
-    tests) python -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -40 || status=1 ;;
+    smoke) python3 benchmarks/gpu_smoke.py --sizes 100000,1000000,10000000 2>&1 | tee "$OUT/smoke.log" || status=1 ;;
+    tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -40 || status=1 ;;
     bench)
-      python benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered 2>&1 | tee "$OUT/bench_knn.log"
-      python benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform 2>&1 | tee -a "$OUT/bench_knn.log"
-      python benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M 2>&1 | tee "$OUT/bench_voronoi.log"
-      python benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+      python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered 2>&1 | tee "$OUT/bench_knn.log"
+      python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform 2>&1 | tee -a "$OUT/bench_knn.log"
+      python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M 2>&1 | tee "$OUT/bench_voronoi.log"
+      python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
     sanitize)
       for tool in memcheck racecheck; do
-        compute-sanitizer --tool $tool --error-exitcode 9 python -c "
+        compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
 import torch, torchvor
 p = torchvor.samples.white_noise(100000, device='cuda')
 torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
