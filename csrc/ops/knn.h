@@ -6,6 +6,7 @@
 #include <ATen/ATen.h>
 
 #include <tuple>
+#include <type_traits>
 
 #include "../core/grid_search.h"
 #include "checks.h"
@@ -14,36 +15,79 @@
 namespace torchvor {
 namespace ops {
 
-// Query t of `order` -> its k nearest points, written to heap row `row(t)`.
-template <typename T>
+// Query t of `order` -> its k nearest points, written to row `row(t)` of
+// (dist2, index). With K_MAX > 0 the heap lives in per-thread arrays (on the
+// GPU: local memory, interleaved across a warp's lanes and cached in L1);
+// K_MAX == 0 keeps it in the output row itself, for any k.
+template <typename T, int K_MAX>
 struct KnnFunctor {
   core::GridView<T> grid;
   const T* queries;              // (M, 3)
   const int64_t* query_batch;    // (M,) or nullptr
   const int32_t* order;          // processing order: query id of step t
-  T* dist2;                      // heap storage, (rows, k)
-  int32_t* index;                // heap storage, (rows, k)
+  T* dist2;                      // (rows, k), or nullptr when only indices are wanted
+  int32_t* index;                // (rows, k)
   int32_t k;
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
 
   TV_HD void operator()(int64_t t) const {
     const int32_t q = order[t];
-    const int64_t row = row_by_query ? q : t;
-    core::NeighborHeap<T> heap{dist2 + row * k, index + row * k, 1, k, 0};
+    const int64_t row = (row_by_query ? q : t) * int64_t(k);
     const int64_t b = query_batch ? query_batch[q] : 0;
+    const core::Vec3<T> query = core::load_vec3(queries + 3 * int64_t(q));
     const T inf = T(1) / T(0);
-    core::knn_search(grid, b, core::load_vec3(queries + 3 * int64_t(q)), exclude_self ? q : -1,
-                     heap, inf);
+    if constexpr (K_MAX > 0) {
+      T heap_dist[K_MAX];
+      int32_t heap_index[K_MAX];
+      core::NeighborHeap<T> heap{heap_dist, heap_index, 1, k, 0};
+      core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
+      for (int32_t e = 0; e < k; ++e) index[row + e] = heap_index[e];
+      if (dist2)
+        for (int32_t e = 0; e < k; ++e) dist2[row + e] = heap_dist[e];
+    } else {
+      core::NeighborHeap<T> heap{dist2 + row, index + row, 1, k, 0};
+      core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
+    }
   }
 };
+
+// Runs the search for `count` queries with the smallest heap tier holding k.
+// `dist2` may be undefined when only indices are wanted and k fits a tier.
+template <typename Exec, typename T>
+void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* query_batch,
+             const int32_t* order, int64_t count, int64_t k, bool exclude_self,
+             bool row_by_query, at::Tensor& dist2, at::Tensor& index) {
+  const auto launch = [&](auto k_max) {
+    constexpr int K_MAX = decltype(k_max)::value;
+    if (K_MAX == 0 && !dist2.defined()) {
+      dist2 = at::empty(index.sizes(), index.options().dtype(c10::CppTypeToScalarType<T>::value));
+    }
+    KnnFunctor<T, K_MAX> functor{grid, queries, query_batch, order,
+                                 dist2.defined() ? dist2.data_ptr<T>() : nullptr,
+                                 index.data_ptr<int32_t>(), static_cast<int32_t>(k),
+                                 exclude_self, row_by_query};
+    Exec::for_each(count, functor);
+  };
+  if (k <= 16) launch(std::integral_constant<int, 16>());
+  else if (k <= 32) launch(std::integral_constant<int, 32>());
+  else if (k <= 64) launch(std::integral_constant<int, 64>());
+  else if (k <= 128) launch(std::integral_constant<int, 128>());
+  else if (k <= 256) launch(std::integral_constant<int, 256>());
+  else launch(std::integral_constant<int, 0>());
+}
 
 template <typename Exec>
 std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
                                                const at::Tensor& queries_in, int64_t k,
-                                               const c10::optional<at::Tensor>& points_batch,
-                                               const c10::optional<at::Tensor>& queries_batch,
+                                               const c10::optional<at::Tensor>& points_batch_in,
+                                               const c10::optional<at::Tensor>& queries_batch_in,
                                                bool exclude_self) {
+  const auto contiguous = [](const c10::optional<at::Tensor>& t) {
+    return t.has_value() ? c10::optional<at::Tensor>(t->contiguous()) : c10::nullopt;
+  };
+  const c10::optional<at::Tensor> points_batch = contiguous(points_batch_in);
+  const c10::optional<at::Tensor> queries_batch = contiguous(queries_batch_in);
   check_points(points_in, "points");
   check_points(queries_in, "queries");
   check_same_device(points_in, "points", queries_in, "queries");
@@ -75,16 +119,10 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
                                ? grid.sorted_index
                                : cell_ids(queries, queries_batch, grid).argsort().to(at::kInt);
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
-    KnnFunctor<scalar_t> functor{grid.view<scalar_t>(),
-                                 queries.data_ptr<scalar_t>(),
-                                 queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
-                                 order.data_ptr<int32_t>(),
-                                 dist2.data_ptr<scalar_t>(),
-                                 index32.data_ptr<int32_t>(),
-                                 static_cast<int32_t>(k),
-                                 exclude_self,
-                                 /*row_by_query=*/true};
-    Exec::for_each(m, functor);
+    run_knn<Exec, scalar_t>(grid.view<scalar_t>(), queries.data_ptr<scalar_t>(),
+                            queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
+                            order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
+                            dist2, index32);
   });
   return {dist2, index32.to(at::kLong)};
 }

@@ -100,18 +100,12 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
   for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
     const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
     const int64_t m = part.size(0);
-    at::Tensor heap_dist = at::empty({m, pass.k}, points.options());
+    at::Tensor heap_dist;  // scratch only when k exceeds the per-thread heap tiers
     at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
-    KnnFunctor<io_t> knn{grid.view<io_t>(),
-                         points.data_ptr<io_t>(),
-                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
-                         part.data_ptr<int32_t>(),
-                         heap_dist.data_ptr<io_t>(),
-                         neighbors.data_ptr<int32_t>(),
-                         static_cast<int32_t>(pass.k),
-                         /*exclude_self=*/true,
-                         /*row_by_query=*/false};
-    Exec::for_each(m, knn);
+    run_knn<Exec, io_t>(grid.view<io_t>(), points.data_ptr<io_t>(),
+                        batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+                        part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
+                        /*row_by_query=*/false, heap_dist, neighbors);
     if (pass.float64 || std::is_same<io_t, double>::value) {
       clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass, out);
     } else {
