@@ -7,6 +7,9 @@
 // (origin, cell size, dims), all stored in one cell-start array.
 #pragma once
 
+#include <cmath>
+#include <cstring>
+
 #include "common.h"
 
 namespace torchvor {
@@ -33,69 +36,103 @@ TV_HD int32_t grid_coordinate(T x, T origin, T cell_size, int32_t dim) {
   return c < dim ? c : dim - 1;
 }
 
-// Max-heap of (squared distance, index) pairs ordered lexicographically, so
-// that ties are broken by the lower index. `stride` lets several queries
-// interleave their heaps (element e of a heap lives at e * stride).
+// Distance along one axis from x to the slab of grid cells [c, c + 1),
+// reduced by `margin` (points are assigned to cells by a rounded division).
+template <typename T>
+TV_HD T slab_gap(T x, T origin, T cell_size, int32_t c, T margin) {
+  const T low = origin + T(c) * cell_size;
+  const T gap = max_of(low - x, x - (low + cell_size));
+  return max_of(gap - margin, T(0));
+}
+
+TV_HD float sqrt_of(float x) { return x > 0.0f ? sqrtf(x) : 0.0f; }
+TV_HD double sqrt_of(double x) { return x > 0.0 ? sqrt(x) : 0.0; }
+
+// A candidate neighbour as one comparable key, ordered by (squared distance,
+// index) so that ties go to the lower index. For float32 the two fit in one
+// uint64 (non-negative float bits sort like unsigned integers): one integer
+// compare per heap step. float64 keeps the pair.
+template <typename T> struct HeapKey;
+
+template <> struct HeapKey<float> {
+  uint64_t bits;
+  TV_HD static HeapKey make(float dist2, int32_t index) {
+    uint32_t d;
+    memcpy(&d, &dist2, sizeof d);
+    return {(uint64_t(d) << 32) | uint32_t(index)};
+  }
+  TV_HD float dist2() const {
+    const uint32_t d = uint32_t(bits >> 32);
+    float f;
+    memcpy(&f, &d, sizeof f);
+    return f;
+  }
+  TV_HD int32_t index() const { return int32_t(uint32_t(bits)); }
+  TV_HD bool operator<(const HeapKey& other) const { return bits < other.bits; }
+};
+
+template <> struct HeapKey<double> {
+  double d;
+  int32_t i;
+  TV_HD static HeapKey make(double dist2, int32_t index) { return {dist2, index}; }
+  TV_HD double dist2() const { return d; }
+  TV_HD int32_t index() const { return i; }
+  TV_HD bool operator<(const HeapKey& other) const {
+    return d < other.d || (d == other.d && i < other.i);
+  }
+};
+
+// Max-heap of candidate keys: the root is the worst of the k best so far.
 template <typename T>
 struct NeighborHeap {
-  T* dist2;
-  int32_t* index;
-  int64_t stride;
+  HeapKey<T>* key;
   int32_t capacity;
   int32_t size;
 
-  TV_HD static bool less(T da, int32_t ia, T db, int32_t ib) {
-    return da < db || (da == db && ia < ib);
-  }
-  TV_HD T& d(int32_t e) const { return dist2[e * stride]; }
-  TV_HD int32_t& i(int32_t e) const { return index[e * stride]; }
   TV_HD bool full() const { return size == capacity; }
-  TV_HD T worst() const { return d(0); }
+  TV_HD T worst() const { return key[0].dist2(); }
 
   TV_HD void offer(T dist, int32_t idx) {
+    const HeapKey<T> candidate = HeapKey<T>::make(dist, idx);
     if (size < capacity) {  // sift up
       int32_t e = size++;
       while (e > 0) {
         const int32_t parent = (e - 1) >> 1;
-        if (!less(d(parent), i(parent), dist, idx)) break;
-        d(e) = d(parent);
-        i(e) = i(parent);
+        if (!(key[parent] < candidate)) break;
+        key[e] = key[parent];
         e = parent;
       }
-      d(e) = dist;
-      i(e) = idx;
-    } else if (less(dist, idx, d(0), i(0))) {
-      sift_down(0, size, dist, idx);
+      key[e] = candidate;
+    } else if (candidate < key[0]) {
+      sift_down(0, size, candidate);
     }
   }
 
-  // Place (dist, idx) at position e of the heap [0, n) and restore heap order.
-  TV_HD void sift_down(int32_t e, int32_t n, T dist, int32_t idx) {
+  // Place `item` at position e of the heap [0, n) and restore heap order.
+  TV_HD void sift_down(int32_t e, int32_t n, HeapKey<T> item) {
     while (true) {
       int32_t child = 2 * e + 1;
       if (child >= n) break;
-      if (child + 1 < n && less(d(child), i(child), d(child + 1), i(child + 1))) ++child;
-      if (!less(dist, idx, d(child), i(child))) break;
-      d(e) = d(child);
-      i(e) = i(child);
+      if (child + 1 < n && key[child] < key[child + 1]) ++child;
+      if (!(item < key[child])) break;
+      key[e] = key[child];
       e = child;
     }
-    d(e) = dist;
-    i(e) = idx;
+    key[e] = item;
   }
 
-  // Heap sort into increasing order; pad unused slots with (inf, -1).
-  TV_HD void sort_and_pad(T infinity) {
+  // Heap sort into increasing order, then write (dist2, index) rows padded
+  // with (inf, -1); `dist2_out` may be null.
+  TV_HD void write_sorted(T* dist2_out, int32_t* index_out, T infinity) {
     for (int32_t n = size - 1; n > 0; --n) {
-      const T top_d = d(0);
-      const int32_t top_i = i(0);
-      sift_down(0, n, d(n), i(n));
-      d(n) = top_d;
-      i(n) = top_i;
+      const HeapKey<T> top = key[0];
+      sift_down(0, n, key[n]);
+      key[n] = top;
     }
-    for (int32_t e = size; e < capacity; ++e) {
-      d(e) = infinity;
-      i(e) = -1;
+    for (int32_t e = 0; e < capacity; ++e) {
+      const bool real = e < size;
+      index_out[e] = real ? key[e].index() : -1;
+      if (dist2_out) dist2_out[e] = real ? key[e].dist2() : infinity;
     }
   }
 };
@@ -112,8 +149,7 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
 }
 
 // Fill `heap` with the k nearest points of batch element `batch` to `query`
-// (excluding the point whose original index is `excluded`, or none if -1),
-// sorted by (distance, index) and padded with (inf, -1).
+// (excluding the point whose original index is `excluded`, or none if -1).
 template <typename T>
 TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int32_t excluded,
                       NeighborHeap<T>& heap, T infinity) {
@@ -134,20 +170,36 @@ TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int
     const int32_t y0 = max_of(cy - r, 0), y1 = min_of(cy + r, dy - 1);
     const int32_t x0 = max_of(cx - r, 0), x1 = min_of(cx + r, dx - 1);
     for (int32_t z = z0; z <= z1; ++z) {
+      // Once the heap is full, skip cells farther than its worst candidate
+      // (strictly: an equally far point with a lower index would still win).
+      const T gap_z = slab_gap(query.z, origin.z, h, z, margin);
+      if (heap.full() && gap_z * gap_z > heap.worst()) continue;
       const bool z_face = (z == cz - r || z == cz + r);
       for (int32_t y = y0; y <= y1; ++y) {
+        const T gap_y = slab_gap(query.y, origin.y, h, y, margin);
+        const T gap_yz2 = gap_z * gap_z + gap_y * gap_y;
+        if (heap.full() && gap_yz2 > heap.worst()) continue;
         const int32_t row = offset + (z * dy + y) * dx;
         if (z_face || y == cy - r || y == cy + r) {
-          // a full row of the shell: its cells are contiguous in sorted order
-          offer_range(grid, grid.cell_start[row + x0], grid.cell_start[row + x1 + 1], query,
-                      excluded, heap);
+          // A full row of the shell (contiguous in sorted order), narrowed to
+          // the cells within reach of the worst candidate.
+          int32_t xa = x0, xb = x1;
+          if (heap.full()) {
+            const T reach = sqrt_of(heap.worst() - gap_yz2) + margin;
+            xa = max_of(xa, grid_coordinate(query.x - reach, origin.x, h, dx));
+            xb = min_of(xb, grid_coordinate(query.x + reach, origin.x, h, dx));
+          }
+          if (xa <= xb)
+            offer_range(grid, grid.cell_start[row + xa], grid.cell_start[row + xb + 1], query,
+                        excluded, heap);
         } else {
-          if (cx - r >= 0)
-            offer_range(grid, grid.cell_start[row + cx - r], grid.cell_start[row + cx - r + 1],
-                        query, excluded, heap);
-          if (r > 0 && cx + r < dx)
-            offer_range(grid, grid.cell_start[row + cx + r], grid.cell_start[row + cx + r + 1],
-                        query, excluded, heap);
+          for (int32_t x = cx - r; x <= cx + r; x += 2 * r) {
+            if (x < 0 || x >= dx) continue;
+            const T gap_x = slab_gap(query.x, origin.x, h, x, margin);
+            if (heap.full() && gap_x * gap_x + gap_yz2 > heap.worst()) continue;
+            offer_range(grid, grid.cell_start[row + x], grid.cell_start[row + x + 1], query,
+                        excluded, heap);
+          }
         }
       }
     }
@@ -172,7 +224,6 @@ TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int
     bound -= margin;
     if (heap.full() && bound > T(0) && heap.worst() < bound * bound) break;
   }
-  heap.sort_and_pad(infinity);
 }
 
 }  // namespace core

@@ -18,7 +18,7 @@ namespace ops {
 // Query t of `order` -> its k nearest points, written to row `row(t)` of
 // (dist2, index). With K_MAX > 0 the heap lives in per-thread arrays (on the
 // GPU: local memory, interleaved across a warp's lanes and cached in L1);
-// K_MAX == 0 keeps it in the output row itself, for any k.
+// K_MAX == 0 keeps it in a global scratch buffer, for any k.
 template <typename T, int K_MAX>
 struct KnnFunctor {
   core::GridView<T> grid;
@@ -27,6 +27,7 @@ struct KnnFunctor {
   const int32_t* order;          // processing order: query id of step t
   T* dist2;                      // (rows, k), or nullptr when only indices are wanted
   int32_t* index;                // (rows, k)
+  core::HeapKey<T>* scratch;     // (rows, k) heap storage when K_MAX == 0
   int32_t k;
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
@@ -38,35 +39,36 @@ struct KnnFunctor {
     const core::Vec3<T> query = core::load_vec3(queries + 3 * int64_t(q));
     const T inf = T(1) / T(0);
     if constexpr (K_MAX > 0) {
-      T heap_dist[K_MAX];
-      int32_t heap_index[K_MAX];
-      core::NeighborHeap<T> heap{heap_dist, heap_index, 1, k, 0};
+      core::HeapKey<T> storage[K_MAX];
+      core::NeighborHeap<T> heap{storage, k, 0};
       core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
-      for (int32_t e = 0; e < k; ++e) index[row + e] = heap_index[e];
-      if (dist2)
-        for (int32_t e = 0; e < k; ++e) dist2[row + e] = heap_dist[e];
+      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, inf);
     } else {
-      core::NeighborHeap<T> heap{dist2 + row, index + row, 1, k, 0};
+      core::NeighborHeap<T> heap{scratch + row, k, 0};
       core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
+      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, inf);
     }
   }
 };
 
 // Runs the search for `count` queries with the smallest heap tier holding k.
-// `dist2` may be undefined when only indices are wanted and k fits a tier.
+// `dist2` may be undefined when only indices are wanted.
 template <typename Exec, typename T>
 void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* query_batch,
              const int32_t* order, int64_t count, int64_t k, bool exclude_self,
              bool row_by_query, at::Tensor& dist2, at::Tensor& index) {
   const auto launch = [&](auto k_max) {
     constexpr int K_MAX = decltype(k_max)::value;
-    if (K_MAX == 0 && !dist2.defined()) {
-      dist2 = at::empty(index.sizes(), index.options().dtype(c10::CppTypeToScalarType<T>::value));
+    at::Tensor scratch;
+    if (K_MAX == 0) {
+      scratch = at::empty({index.numel() * int64_t(sizeof(core::HeapKey<T>))},
+                          index.options().dtype(at::kByte));
     }
     KnnFunctor<T, K_MAX> functor{grid, queries, query_batch, order,
                                  dist2.defined() ? dist2.data_ptr<T>() : nullptr,
-                                 index.data_ptr<int32_t>(), static_cast<int32_t>(k),
-                                 exclude_self, row_by_query};
+                                 index.data_ptr<int32_t>(),
+                                 scratch.defined() ? reinterpret_cast<core::HeapKey<T>*>(scratch.data_ptr<uint8_t>()) : nullptr,
+                                 static_cast<int32_t>(k), exclude_self, row_by_query};
     Exec::for_each(count, functor);
   };
   if (k <= 16) launch(std::integral_constant<int, 16>());

@@ -100,12 +100,12 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
   for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
     const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
     const int64_t m = part.size(0);
-    at::Tensor heap_dist;  // scratch only when k exceeds the per-thread heap tiers
+    at::Tensor no_distances;  // the clipper recomputes distances from coordinates
     at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
     run_knn<Exec, io_t>(grid.view<io_t>(), points.data_ptr<io_t>(),
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
-                        /*row_by_query=*/false, heap_dist, neighbors);
+                        /*row_by_query=*/false, no_distances, neighbors);
     if (pass.float64 || std::is_same<io_t, double>::value) {
       clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass, out);
     } else {
@@ -163,7 +163,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
                       "torchvor: points must lie inside box (lo <= p <= hi)");
   }
 
-  const Grid grid = build_grid(points, batch, num_boxes, 4.0);
+  const Grid grid = build_grid(points, batch, num_boxes, points_per_cell_for(k));
   // The largest batch element bounds the useful k: a query that asks for as
   // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
   const int64_t largest_cloud = batch.has_value()
