@@ -120,20 +120,32 @@ struct ConvexCell {
     const int new_plane = num_planes++;
     plane[new_plane] = p;
     // Boundary of the removed disc R (Alg. 4): the directed edges of R whose
-    // reverse is not in R, stored as a successor map over plane ids.
+    // reverse is not in R, stored as a successor map over plane ids. Edges
+    // are packed as 16-bit codes (from << 8 | to) so the search for a reverse
+    // edge is a scan of small integers.
+    const int removed_edges = 3 * (num_triangles - kept);
+    if (removed_edges > 3 * MAX_TRIANGLES) return fail(kBoundaryError);
+    uint16_t edge[3 * MAX_TRIANGLES];
+    for (int t = kept, e = 0; t < num_triangles; ++t, e += 3) {
+      const uint16_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
+      edge[e] = uint16_t(a << 8 | b);
+      edge[e + 1] = uint16_t(b << 8 | c);
+      edge[e + 2] = uint16_t(c << 8 | a);
+    }
     uint8_t next[MAX_PLANES];
     for (int q = 0; q < num_planes; ++q) next[q] = kNone;
     int boundary_length = 0;
     uint8_t start = kNone;
-    for (int t = kept; t < num_triangles; ++t) {
-      for (int e = 0; e < 3; ++e) {
-        const uint8_t from = triangle[t][e], to = triangle[t][(e + 1) % 3];
-        if (edge_in_removed(to, from, kept)) continue;  // interior edge of R
-        if (next[from] != kNone) return fail(kBoundaryError);  // not a simple cycle
-        next[from] = to;
-        start = from;
-        ++boundary_length;
-      }
+    for (int e = 0; e < removed_edges; ++e) {
+      const uint16_t reverse = uint16_t((edge[e] & 0xff) << 8 | edge[e] >> 8);
+      bool interior = false;
+      for (int f = 0; f < removed_edges; ++f) interior |= (edge[f] == reverse);
+      if (interior) continue;
+      const uint8_t from = uint8_t(edge[e] >> 8), to = uint8_t(edge[e] & 0xff);
+      if (next[from] != kNone) return fail(kBoundaryError);  // not a simple cycle
+      next[from] = to;
+      start = from;
+      ++boundary_length;
     }
     if (boundary_length < 3) return fail(kBoundaryError);
     if (kept + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
@@ -189,14 +201,6 @@ struct ConvexCell {
     const Vec3<T> v = vertex[s];
     vertex[s] = vertex[t];
     vertex[t] = v;
-  }
-
-  TV_HD bool edge_in_removed(uint8_t from, uint8_t to, int removed_begin) const {
-    for (int t = removed_begin; t < num_triangles; ++t) {
-      const uint8_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
-      if ((a == from && b == to) || (b == from && c == to) || (c == from && a == to)) return true;
-    }
-    return false;
   }
 
   // Drop planes that no vertex uses any more and renumber the rest, so that a
