@@ -104,34 +104,45 @@ struct ConvexCell {
     const T r2 = dot(r, r);
     const Plane<T> p = {{-r.x, -r.y, -r.z}, T(0.5) * r2};
     const T threshold = -tolerance * r2;
-    // Move the clipped triangles to the end: [0, kept) stays, [kept, n) is R.
-    int kept = num_triangles;
-    for (int t = 0; t < kept;) {
-      if (dot(p.normal, vertex[t]) + p.offset < threshold) {
-        --kept;
-        swap_triangles(t, kept);
-      } else {
-        ++t;
-      }
+    // Classify every vertex first into a bit mask. The iterations are
+    // independent, so several vertex loads are in flight at once (the GPU
+    // kernel is bound by local-memory latency), and most planes miss the cell.
+    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
+    uint32_t clipped[kWords];
+    for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
+    bool any_clipped = false;
+    for (int t = 0; t < num_triangles; ++t) {
+      const bool outside = dot(p.normal, vertex[t]) + p.offset < threshold;
+      clipped[t >> 5] |= uint32_t(outside) << (t & 31);
+      any_clipped |= outside;
     }
-    if (kept == num_triangles) return true;  // the plane misses the cell
+    if (!any_clipped) return true;  // the plane misses the cell
     if (num_planes == MAX_PLANES) compact_planes();
     if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
     const int new_plane = num_planes++;
     plane[new_plane] = p;
-    // Boundary of the removed disc R (Alg. 4): the directed edges of R whose
-    // reverse is not in R, stored as a successor map over plane ids. Edges
-    // are packed as 16-bit codes (from << 8 | to) so the search for a reverse
-    // edge is a scan of small integers.
-    const int removed_edges = 3 * (num_triangles - kept);
-    if (removed_edges > 3 * MAX_TRIANGLES) return fail(kBoundaryError);
+    // Split the triangles: the removed region R becomes directed-edge codes
+    // (from << 8 | to), the kept triangles are compacted in place.
     uint16_t edge[3 * MAX_TRIANGLES];
-    for (int t = kept, e = 0; t < num_triangles; ++t, e += 3) {
+    int removed_edges = 0, kept = 0;
+    for (int t = 0; t < num_triangles; ++t) {
       const uint16_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
-      edge[e] = uint16_t(a << 8 | b);
-      edge[e + 1] = uint16_t(b << 8 | c);
-      edge[e + 2] = uint16_t(c << 8 | a);
+      if ((clipped[t >> 5] >> (t & 31)) & 1u) {
+        edge[removed_edges++] = uint16_t(a << 8 | b);
+        edge[removed_edges++] = uint16_t(b << 8 | c);
+        edge[removed_edges++] = uint16_t(c << 8 | a);
+      } else {
+        if (kept != t) {
+          triangle[kept][0] = uint8_t(a);
+          triangle[kept][1] = uint8_t(b);
+          triangle[kept][2] = uint8_t(c);
+          vertex[kept] = vertex[t];
+        }
+        ++kept;
+      }
     }
+    // Boundary of R (Alg. 4): its directed edges whose reverse is not in R,
+    // stored as a successor map over plane ids.
     uint8_t next[MAX_PLANES];
     for (int q = 0; q < num_planes; ++q) next[q] = kNone;
     int boundary_length = 0;
@@ -190,17 +201,6 @@ struct ConvexCell {
   TV_HD bool fail(int8_t code) {
     status = code;
     return false;
-  }
-
-  TV_HD void swap_triangles(int s, int t) {
-    for (int e = 0; e < 3; ++e) {
-      const uint8_t id = triangle[s][e];
-      triangle[s][e] = triangle[t][e];
-      triangle[t][e] = id;
-    }
-    const Vec3<T> v = vertex[s];
-    vertex[s] = vertex[t];
-    vertex[t] = v;
   }
 
   // Drop planes that no vertex uses any more and renumber the rest, so that a
