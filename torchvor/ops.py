@@ -124,11 +124,20 @@ def knn_graph(
     result = knn(points, k, batch=batch, exclude_self=not loop)
     n = points.shape[0]
     target = torch.arange(n, device=points.device).repeat_interleave(k)
-    source = result.idx.reshape(-1)
-    edge_index = torch.stack([source, target])
-    if torch.compiler.is_compiling():
-        return edge_index
-    return edge_index[:, source >= 0]
+    return _drop_missing_edges(torch.stack([result.idx.reshape(-1), target]))
+
+
+@torch.library.custom_op("torchvor::drop_missing_edges", mutates_args=())
+def _drop_missing_edges(edge_index: torch.Tensor) -> torch.Tensor:
+    """Drop the columns of a (2, E) edge index whose source is -1 (kNN padding)."""
+    return edge_index[:, edge_index[0] >= 0]
+
+
+@_drop_missing_edges.register_fake
+def _drop_missing_edges_fake(edge_index):
+    # The number of real edges depends on the data: a dynamic size for torch.compile.
+    edges = torch.library.get_ctx().new_dynamic_size()
+    return edge_index.new_empty((2, edges))
 
 
 def as_box(points: torch.Tensor, box: Optional[BoxLike], batch: Optional[torch.Tensor] = None) -> torch.Tensor:
