@@ -34,10 +34,11 @@ struct ConvexCell {
   T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
   bool radius_stale; // vertices were removed since radius2_bound was exact
   T tolerance;       // relative tolerance of the clipping predicate
+  int max_band_widenings;  // retries of an inconsistent clip with a 10x wider band
   int8_t status;
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
-  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance) {
+  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
     plane[0] = {{T(1), T(0), T(0)}, -lo.x};
     plane[1] = {{T(-1), T(0), T(0)}, hi.x};
     plane[2] = {{T(0), T(1), T(0)}, -lo.y};
@@ -55,6 +56,7 @@ struct ConvexCell {
     }
     radius_stale = false;
     tolerance = relative_tolerance;
+    max_band_widenings = band_widenings;
     status = kSuccess;
   }
 
@@ -103,75 +105,42 @@ struct ConvexCell {
   TV_HD bool clip_by_bisector(Vec3<T> r) {
     const T r2 = dot(r, r);
     const Plane<T> p = {{-r.x, -r.y, -r.z}, T(0.5) * r2};
-    const T threshold = -tolerance * r2;
-    // Classify every vertex first into a bit mask. The iterations are
-    // independent, so several vertex loads are in flight at once (the GPU
-    // kernel is bound by local-memory latency), and most planes miss the cell.
+    // Vertices within the tolerance band of the plane are kept. If the removed
+    // region is then not a disc (inconsistent predicates: vertices of nearly
+    // parallel planes, computed with errors beyond the band), fail, or in the
+    // last-resort pass widen the band for this plane only, tenfold at a time:
+    // far enough from the plane, every classification agrees with the exact
+    // one, and the volume error stays of the order of the band.
     constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
     uint32_t clipped[kWords];
-    for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
-    bool any_clipped = false;
-    for (int t = 0; t < num_triangles; ++t) {
-      const bool outside = dot(p.normal, vertex[t]) + p.offset < threshold;
-      clipped[t >> 5] |= uint32_t(outside) << (t & 31);
-      any_clipped |= outside;
-    }
-    if (!any_clipped) return true;  // the plane misses the cell
-    if (num_planes == MAX_PLANES) compact_planes();
-    if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
-    const int new_plane = num_planes++;
-    plane[new_plane] = p;
-    // Split the triangles: the removed region R becomes directed-edge codes
-    // (from << 8 | to), the kept triangles are compacted in place.
-    uint16_t edge[3 * MAX_TRIANGLES];
-    int removed_edges = 0, kept = 0;
-    for (int t = 0; t < num_triangles; ++t) {
-      const uint16_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
-      if ((clipped[t >> 5] >> (t & 31)) & 1u) {
-        edge[removed_edges++] = uint16_t(a << 8 | b);
-        edge[removed_edges++] = uint16_t(b << 8 | c);
-        edge[removed_edges++] = uint16_t(c << 8 | a);
-      } else {
-        if (kept != t) {
-          triangle[kept][0] = uint8_t(a);
-          triangle[kept][1] = uint8_t(b);
-          triangle[kept][2] = uint8_t(c);
-          vertex[kept] = vertex[t];
-        }
-        ++kept;
-      }
-    }
-    // Boundary of R (Alg. 4): its directed edges whose reverse is not in R,
-    // stored as a successor map over plane ids.
-    uint8_t next[MAX_PLANES];
-    for (int q = 0; q < num_planes; ++q) next[q] = kNone;
+    uint8_t next[MAX_PLANES + 1];
     int boundary_length = 0;
     uint8_t start = kNone;
-    for (int e = 0; e < removed_edges; ++e) {
-      const uint16_t reverse = uint16_t((edge[e] & 0xff) << 8 | edge[e] >> 8);
-      bool interior = false;
-      for (int f = 0; f < removed_edges; ++f) interior |= (edge[f] == reverse);
-      if (interior) continue;
-      const uint8_t from = uint8_t(edge[e] >> 8), to = uint8_t(edge[e] & 0xff);
-      if (next[from] != kNone) return fail(kBoundaryError);  // not a simple cycle
-      next[from] = to;
-      start = from;
-      ++boundary_length;
+    T band = tolerance;
+    for (int attempt = 0;; ++attempt, band *= T(10)) {
+      if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
+      if (!classify(p, -band * r2, clipped)) return true;  // the plane misses the cell
+      if (num_planes == MAX_PLANES) compact_planes();
+      if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
+      if (removed_boundary(clipped, next, boundary_length, start)) break;
     }
-    if (boundary_length < 3) return fail(kBoundaryError);
-    if (kept + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
+    if (num_triangles - removed_count(clipped) + boundary_length > MAX_TRIANGLES)
+      return fail(kTooManyVertices);
+    const int new_plane = num_planes++;
+    plane[new_plane] = p;
+    compact_kept(clipped);
     // Close the hole with a fan of triangles (s, t, p) along the boundary cycle.
-    num_triangles = kept;
     uint8_t from = start;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
-      if (to == kNone) return fail(kBoundaryError);
       set_triangle(num_triangles, from, to, static_cast<uint8_t>(new_plane));
-      radius2_bound = max_of(radius2_bound, dot(vertex[num_triangles], vertex[num_triangles]));
+      const Vec3<T> v = vertex[num_triangles];
+      const T v2 = dot(v, v);
+      if (!(v2 < T(1) / T(0))) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
+      radius2_bound = max_of(radius2_bound, v2);
       ++num_triangles;
       from = to;
     }
-    if (from != start) return fail(kBoundaryError);  // more than one cycle
     radius_stale = true;
     return true;
   }
@@ -201,6 +170,91 @@ struct ConvexCell {
   TV_HD bool fail(int8_t code) {
     status = code;
     return false;
+  }
+
+  // Marks the vertices more than `threshold` (< 0) outside plane p; returns
+  // whether any is. Independent iterations: several vertex loads in flight
+  // at once (the GPU kernel is bound by local-memory latency).
+  TV_HD bool classify(const Plane<T>& p, T threshold, uint32_t* clipped) const {
+    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
+    for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
+    bool any_clipped = false;
+    for (int t = 0; t < num_triangles; ++t) {
+      const bool outside = dot(p.normal, vertex[t]) + p.offset < threshold;
+      clipped[t >> 5] |= uint32_t(outside) << (t & 31);
+      any_clipped |= outside;
+    }
+    return any_clipped;
+  }
+
+  TV_HD static bool is_set(const uint32_t* bits, int t) { return (bits[t >> 5] >> (t & 31)) & 1u; }
+
+  TV_HD int removed_count(const uint32_t* clipped) const {
+    int count = 0;
+    for (int t = 0; t < num_triangles; ++t) count += is_set(clipped, t);
+    return count;
+  }
+
+  // Boundary of the removed region R (Alg. 4): the directed edges of R whose
+  // reverse is not in R, as a successor map over plane ids. Edges are packed
+  // as 16-bit codes (from << 8 | to) so the reverse-edge search scans small
+  // integers. False if the boundary is not one simple cycle.
+  TV_HD bool removed_boundary(const uint32_t* clipped, uint8_t* next, int& length,
+                              uint8_t& start) const {
+    uint16_t edge[3 * MAX_TRIANGLES];
+    int removed_edges = 0;
+    for (int t = 0; t < num_triangles; ++t) {
+      if (!is_set(clipped, t)) continue;
+      const uint16_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
+      edge[removed_edges++] = uint16_t(a << 8 | b);
+      edge[removed_edges++] = uint16_t(b << 8 | c);
+      edge[removed_edges++] = uint16_t(c << 8 | a);
+    }
+    for (int q = 0; q < num_planes; ++q) next[q] = kNone;
+    length = 0;
+    start = kNone;
+    for (int e = 0; e < removed_edges; ++e) {
+      const uint16_t reverse = uint16_t((edge[e] & 0xff) << 8 | edge[e] >> 8);
+      bool interior = false;
+      for (int f = 0; f < removed_edges; ++f) interior |= (edge[f] == reverse);
+      if (interior) continue;
+      const uint8_t from = uint8_t(edge[e] >> 8), to = uint8_t(edge[e] & 0xff);
+      if (next[from] != kNone) return false;  // a vertex twice on the boundary
+      next[from] = to;
+      start = from;
+      ++length;
+    }
+    if (length < 3) return false;
+    uint8_t from = start;  // the successor map must be one cycle through all edges
+    for (int e = 0; e < length; ++e) {
+      from = next[from];
+      if (from == kNone) return false;
+    }
+    return from == start && cycle_length(next, start) == length;
+  }
+
+  TV_HD static int cycle_length(const uint8_t* next, uint8_t start) {
+    int length = 0;
+    uint8_t from = start;
+    do {
+      from = next[from];
+      ++length;
+    } while (from != start && from != kNone && length <= MAX_PLANES);
+    return length;
+  }
+
+  // Drop the removed triangles, keeping the order of the others.
+  TV_HD void compact_kept(const uint32_t* clipped) {
+    int kept = 0;
+    for (int t = 0; t < num_triangles; ++t) {
+      if (is_set(clipped, t)) continue;
+      if (kept != t) {
+        for (int e = 0; e < 3; ++e) triangle[kept][e] = triangle[t][e];
+        vertex[kept] = vertex[t];
+      }
+      ++kept;
+    }
+    num_triangles = kept;
   }
 
   // Drop planes that no vertex uses any more and renumber the rest, so that a

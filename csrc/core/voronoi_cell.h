@@ -22,16 +22,17 @@ template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename io_t>
 TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& cell,
                                     const io_t* points, int32_t seed_index,
                                     const int32_t* neighbors, int32_t k, const io_t* box,
-                                    T relative_tolerance) {
+                                    T relative_tolerance, int band_widenings) {
   const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
                         T(points[3 * seed_index + 2])};
   const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
   const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
-  cell.init_box(lo - seed, hi - seed, relative_tolerance);
+  cell.init_box(lo - seed, hi - seed, relative_tolerance, band_widenings);
 
   CellIntegrals<T> out;
   out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
   out.neighbors = k;
+  Vec3<T> previous = {T(0), T(0), T(0)};
   for (int32_t n = 0; n < k; ++n) {
     const int32_t j = neighbors[n];
     if (j < 0) {  // every point of the batch element has been used
@@ -54,6 +55,10 @@ TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& ce
       }
       continue;
     }
+    // Exact copies among the neighbours (sorted, so adjacent) give the same
+    // bisector twice: clip once.
+    if (n > 0 && r.x == previous.x && r.y == previous.y && r.z == previous.z) continue;
+    previous = r;
     if (cell.security_radius_reached(r2)) {
       out.status = kSuccess;
       out.neighbors = n;
@@ -74,6 +79,15 @@ TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& ce
   }
   Vec3<T> first_moment;
   cell.integrate(out.volume, first_moment, out.second_moment);
+  const T sum = out.volume + out.second_moment + first_moment.x + first_moment.y + first_moment.z;
+  if (!(sum - sum == T(0))) {  // NaN or Inf from a degenerate cell: never a silent success
+    const T nan = T(0) / T(0);
+    out.status = kBoundaryError;
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
+    return out;
+  }
   // The centroid of an empty (zero-volume) cell is its seed.
   out.centroid = out.volume > T(0) ? seed + (T(1) / out.volume) * first_moment : seed;
   return out;

@@ -2,8 +2,9 @@
 //
 // Cells are computed chunk by chunk (kNN into a bounded buffer, then clipping),
 // so no N x k neighbour array ever exists. Failed cells are retried with more
-// neighbours, larger arrays and finally float64 with a looser predicate
-// tolerance; a cell that fails every pass keeps its status and NaN outputs.
+// neighbours, larger arrays, float64, and finally float64 with a predicate
+// band widened where (and only where) a clip is inconsistent; a cell that
+// fails every pass keeps its status and NaN outputs.
 #pragma once
 
 #include <ATen/ATen.h>
@@ -30,6 +31,7 @@ struct ClipFunctor {
   const int32_t* neighbors;    // (chunk, k)
   int32_t k;
   T tolerance;
+  int band_widenings;          // > 0 only in the last-resort pass
   io_t* volume;                // (N,)
   io_t* centroid;              // (N, 3)
   io_t* second_moment;         // (N,)
@@ -41,7 +43,7 @@ struct ClipFunctor {
     const int64_t b = batch ? batch[i] : 0;
     core::ConvexCell<T, MAX_PLANES, 2 * MAX_PLANES> cell;
     const core::CellIntegrals<T> out = core::compute_cell(
-        cell, points, i, neighbors + t * int64_t(k), k, box + 6 * b, tolerance);
+        cell, points, i, neighbors + t * int64_t(k), k, box + 6 * b, tolerance, band_widenings);
     volume[i] = static_cast<io_t>(out.volume);
     centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
     centroid[3 * int64_t(i) + 1] = static_cast<io_t>(out.centroid.y);
@@ -57,7 +59,7 @@ struct PassSettings {
   int64_t k;
   int tier;            // 0, 1, 2: at most 32, 64, 160 planes
   bool float64;        // compute in double even for float32 input
-  bool loose;          // 1000x larger predicate tolerance (last resort)
+  bool loose;          // last resort: widen the predicate band of inconsistent clips
 };
 
 struct VoronoiOutputs {
@@ -68,12 +70,12 @@ template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool loose, VoronoiOutputs& out) {
-  const T tolerance = core::ClipTolerance<T>::value * (loose ? T(1000) : T(1));
+  const T tolerance = core::ClipTolerance<T>::value;
   ClipFunctor<io_t, T, MAX_PLANES> functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
       cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
-      static_cast<int32_t>(neighbors.size(1)), tolerance,
+      static_cast<int32_t>(neighbors.size(1)), tolerance, loose ? 6 : 0,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
