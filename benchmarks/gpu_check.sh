@@ -23,10 +23,22 @@ for step in "${@:-smoke}"; do
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform 2>&1 | tee -a "$OUT/bench_knn.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+    ncu)
+      python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
+import torch, torchvor.samples
+torch.save(torchvor.samples.jittered_grid(1_000_000, seed=1), "/tmp/jittered_1m.pt")
+PY
+      ncu --clock-control none --kernel-name-base demangled -k regex:ClipFunctor --launch-count 1 --section SpeedOfLight --section WarpStateStats \
+          --section Occupancy --section LaunchStats --section MemoryWorkloadAnalysis --section SchedulerStats \
+          python3 -c "
+import torch, torchvor
+p = torch.load('/tmp/jittered_1m.pt').cuda()
+torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.synchronize()
+" 2>&1 | grep -v '^==PROF==' | tee "$OUT/ncu.log" | grep -E "Duration|Throughput|Registers|Achieved Occupancy|Theoretical Occupancy|Stall|Warp Cycles|Local|L1/TEX Hit|L2 Hit|Eligible|Issued|Block Limit|Dynamic|Static|Executed Ipc" ;;
     sanitize)
       for tool in memcheck racecheck; do
         compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
-import torch, torchvor
+import torch, torchvor, torchvor.samples
 p = torchvor.samples.white_noise(100000, device='cuda')
 torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
 torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item())

@@ -4,8 +4,6 @@
 #include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDAException.h>
 
-#include <cstdlib>
-
 namespace torchvor {
 namespace cuda {
 
@@ -16,23 +14,15 @@ __global__ void for_each_kernel(int64_t n, Functor functor) {
 }
 
 struct CudaExec {
+  // 128 threads per block: a sweep of 32-256 threads and of residency caps
+  // changed nothing or made it slower (benchmarks/NOTES.md).
   static constexpr int kThreads = 128;
 
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {
     if (n == 0) return;
-    int threads = kThreads;
-    int padding = 0;  // EXPERIMENT: dynamic shared memory that limits blocks per SM
-    if (Functor::kIsClip) {
-      if (const char* s = std::getenv("TORCHVOR_CLIP_THREADS")) threads = std::atoi(s);
-      if (const char* s = std::getenv("TORCHVOR_CLIP_SMEM")) padding = std::atoi(s);
-      if (padding > 48 * 1024) {
-        C10_CUDA_CHECK(cudaFuncSetAttribute(for_each_kernel<Functor>,
-                                            cudaFuncAttributeMaxDynamicSharedMemorySize, padding));
-      }
-    }
-    const int64_t blocks = (n + threads - 1) / threads;
-    for_each_kernel<<<blocks, threads, padding, at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    const int64_t blocks = (n + kThreads - 1) / kThreads;
+    for_each_kernel<<<blocks, kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(n, functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 };

@@ -21,7 +21,6 @@ namespace ops {
 // K_MAX == 0 keeps it in a global scratch buffer, for any k.
 template <typename T, int K_MAX>
 struct KnnFunctor {
-  static constexpr bool kIsClip = false;  // EXPERIMENT hook for the CUDA launch sweep
   core::GridView<T> grid;
   const T* queries;              // (M, 3)
   const int64_t* query_batch;    // (M,) or nullptr

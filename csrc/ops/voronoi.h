@@ -23,7 +23,6 @@ namespace ops {
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
 template <typename io_t, typename T, int MAX_PLANES>
 struct ClipFunctor {
-  static constexpr bool kIsClip = true;  // EXPERIMENT hook for the CUDA launch sweep
   const io_t* points;          // (N, 3)
   const io_t* box;             // (B, 2, 3)
   const int64_t* batch;        // (N,) or nullptr
