@@ -9,11 +9,22 @@
 namespace torchvor {
 namespace ops {
 
+// "(20, 2)": formatted by hand because streaming c10::IntArrayRef from code
+// compiled by nvcc crashed on the GPU machine (torch 2.11, nvcc 13.0).
+inline std::string shape_string(const at::Tensor& t) {
+  std::string text = "(";
+  for (int64_t d = 0; d < t.dim(); ++d) {
+    if (d > 0) text += ", ";
+    text += std::to_string(t.size(d));
+  }
+  return text + (t.dim() == 1 ? ",)" : ")");
+}
+
 inline void check_points(const at::Tensor& points, const char* name) {
   TORCH_CHECK_TYPE(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
                    "torchvor: ", name, " must be float32 or float64, got ", points.scalar_type());
   TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) == 3, "torchvor: ", name,
-                    " must have shape (N, 3), got ", points.sizes());
+                    " must have shape (N, 3), got ", shape_string(points));
   TORCH_CHECK_VALUE(points.size(0) < (int64_t(1) << 31) - 1, "torchvor: ", name,
                     " has too many points (at most 2^31 - 2)");
 }
@@ -39,7 +50,7 @@ inline int64_t check_batch(const c10::optional<at::Tensor>& batch, int64_t n, co
   TORCH_CHECK_TYPE(b.scalar_type() == at::kLong, "torchvor: ", name, " must be int64, got ",
                    b.scalar_type());
   TORCH_CHECK_VALUE(b.dim() == 1 && b.size(0) == n, "torchvor: ", name, " must have shape (",
-                    n, ",), got ", b.sizes());
+                    n, ",), got ", shape_string(b));
   check_same_device(like, "points", b, name);
   if (n == 0) return 1;
   TORCH_CHECK_VALUE(b.min().item<int64_t>() >= 0, "torchvor: ", name,

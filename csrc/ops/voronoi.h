@@ -126,7 +126,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
                    "torchvor: box must have the dtype of points (", points_in.scalar_type(),
                    "), got ", box_in.scalar_type());
   TORCH_CHECK_VALUE(box_in.dim() == 3 && box_in.size(1) == 2 && box_in.size(2) == 3,
-                    "torchvor: box must have shape (B, 2, 3), got ", box_in.sizes());
+                    "torchvor: box must have shape (B, 2, 3), got ", shape_string(box_in));
   TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
   TORCH_CHECK_VALUE(memory_budget >= 1, "torchvor: memory_budget must be positive");
   const int64_t n = points_in.size(0);
