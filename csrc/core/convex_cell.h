@@ -8,6 +8,7 @@
 #pragma once
 
 #include "common.h"
+#include "double_double.h"
 #include "status.h"
 
 namespace torchvor {
@@ -20,6 +21,7 @@ namespace core {
 template <typename T> struct ClipTolerance;
 template <> struct ClipTolerance<float> { static constexpr float value = 2e-6f; };
 template <> struct ClipTolerance<double> { static constexpr double value = 1e-13; };
+template <> struct ClipTolerance<DoubleDouble> { static constexpr double value = 1e-28; };
 
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
 struct ConvexCell {
@@ -117,7 +119,7 @@ struct ConvexCell {
     int boundary_length = 0;
     uint8_t start = kNone;
     T band = tolerance;
-    for (int attempt = 0;; ++attempt, band *= T(10)) {
+    for (int attempt = 0;; ++attempt, band = band * T(10)) {
       if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
       if (!classify(p, -band * r2, clipped)) return true;  // the plane misses the cell
       if (num_planes == MAX_PLANES) compact_planes();
@@ -136,7 +138,7 @@ struct ConvexCell {
       set_triangle(num_triangles, from, to, static_cast<uint8_t>(new_plane));
       const Vec3<T> v = vertex[num_triangles];
       const T v2 = dot(v, v);
-      if (!(v2 < T(1) / T(0))) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
+      if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       radius2_bound = max_of(radius2_bound, v2);
       ++num_triangles;
       from = to;

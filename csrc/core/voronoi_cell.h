@@ -80,7 +80,7 @@ TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& ce
   Vec3<T> first_moment;
   cell.integrate(out.volume, first_moment, out.second_moment);
   const T sum = out.volume + out.second_moment + first_moment.x + first_moment.y + first_moment.z;
-  if (!(sum - sum == T(0))) {  // NaN or Inf from a degenerate cell: never a silent success
+  if (!is_finite_value(sum)) {  // NaN or Inf from a degenerate cell: never a silent success
     const T nan = T(0) / T(0);
     out.status = kBoundaryError;
     out.volume = nan;

@@ -1,10 +1,11 @@
 // torchvor::voronoi_cells, shared by the CPU and CUDA backends.
 //
 // Cells are computed chunk by chunk (kNN into a bounded buffer, then clipping),
-// so no N x k neighbour array ever exists. Failed cells are retried with more
-// neighbours, larger arrays, float64, and finally float64 with a predicate
-// band widened where (and only where) a clip is inconsistent; a cell that
-// fails every pass keeps its status and NaN outputs.
+// so no N x k neighbour array ever exists. Failed cells are retried with what
+// their status asks for: more neighbours, larger arrays, or more precision
+// (float64, then double-double on the CPU, where an inconsistent clip may also
+// widen its predicate band). A cell that fails every pass keeps its status
+// and NaN outputs.
 #pragma once
 
 #include <ATen/ATen.h>
@@ -13,6 +14,7 @@
 #include <tuple>
 
 #include "../core/voronoi_cell.h"
+#include "../cpu/exec.h"
 #include "checks.h"
 #include "grid.h"
 #include "knn.h"
@@ -31,6 +33,7 @@ struct ClipFunctor {
   int32_t k;
   T tolerance;
   int band_widenings;          // > 0 only in the last-resort pass
+  bool rows_by_step;           // write row t (chunk-local outputs) instead of row cells[t]
   io_t* volume;                // (N,)
   io_t* centroid;              // (N, 3)
   io_t* second_moment;         // (N,)
@@ -38,11 +41,12 @@ struct ClipFunctor {
   int32_t* num_neighbors;      // (N,)
 
   TV_HD void operator()(int64_t t) const {
-    const int32_t i = cells[t];
-    const int64_t b = batch ? batch[i] : 0;
+    const int32_t cell_id = cells[t];
+    const int64_t b = batch ? batch[cell_id] : 0;
     core::ConvexCell<T, MAX_PLANES, 2 * MAX_PLANES> cell;
     const core::CellIntegrals<T> out = core::compute_cell(
-        cell, points, i, neighbors + t * int64_t(k), k, box + 6 * b, tolerance, band_widenings);
+        cell, points, cell_id, neighbors + t * int64_t(k), k, box + 6 * b, tolerance, band_widenings);
+    const int64_t i = rows_by_step ? t : cell_id;
     volume[i] = static_cast<io_t>(out.volume);
     centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
     centroid[3 * int64_t(i) + 1] = static_cast<io_t>(out.centroid.y);
@@ -54,11 +58,16 @@ struct ClipFunctor {
 };
 
 // How hard a pass tries: neighbours per cell, array tier, precision.
+enum class Precision { kInput, kFloat64, kDoubleDouble };
+
 struct PassSettings {
   int64_t k;
   int tier;            // 0, 1, 2: at most 32, 64, 160 planes
-  bool float64;        // compute in double even for float32 input
-  bool loose;          // last resort: widen the predicate band of inconsistent clips
+  Precision precision;
+
+  bool operator==(const PassSettings& o) const {
+    return k == o.k && tier == o.tier && precision == o.precision;
+  }
 };
 
 struct VoronoiOutputs {
@@ -68,13 +77,14 @@ struct VoronoiOutputs {
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                const at::Tensor& neighbors, bool loose, VoronoiOutputs& out) {
-  const T tolerance = core::ClipTolerance<T>::value;
+                const at::Tensor& neighbors, int band_widenings, bool rows_by_step,
+                VoronoiOutputs& out) {
   ClipFunctor<io_t, T, MAX_PLANES> functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
       cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
-      static_cast<int32_t>(neighbors.size(1)), tolerance, loose ? 6 : 0,
+      static_cast<int32_t>(neighbors.size(1)), T(core::ClipTolerance<T>::value),
+      band_widenings,                 rows_by_step,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
@@ -84,12 +94,41 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
 template <typename Exec, typename io_t, typename T>
 void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                     const at::Tensor& neighbors, const PassSettings& pass, VoronoiOutputs& out) {
-  switch (pass.tier) {
-    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, pass.loose, out); break;
-    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, pass.loose, out); break;
-    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, pass.loose, out); break;
+                     const at::Tensor& neighbors, int tier, VoronoiOutputs& out) {
+  switch (tier) {
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, 0, false, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, 0, false, out); break;
+    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, 0, false, out); break;
   }
+}
+
+// The last resort, on the CPU whatever the device (as the paper's fallback):
+// double-double arithmetic, and an inconsistent clip may widen its predicate
+// band up to 6 times tenfold. Only a handful of cells ever get here.
+template <typename io_t>
+void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
+                              const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                              const at::Tensor& neighbors, VoronoiOutputs& out) {
+  const int64_t m = cells.size(0);
+  const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU).contiguous(); };
+  const c10::optional<at::Tensor> batch_cpu =
+      batch.has_value() ? c10::optional<at::Tensor>(cpu(*batch)) : c10::nullopt;
+  VoronoiOutputs part;
+  const auto options = points.options().device(at::kCPU);
+  part.volume = at::empty({m}, options);
+  part.centroid = at::empty({m, 3}, options);
+  part.second_moment = at::empty({m}, options);
+  part.status = at::empty({m}, options.dtype(at::kChar));
+  part.num_neighbors = at::empty({m}, options.dtype(at::kInt));
+  clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
+      cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), /*band_widenings=*/6,
+      /*rows_by_step=*/true, part);
+  const at::Tensor rows = cells.to(at::kLong);
+  out.volume.index_copy_(0, rows, part.volume.to(out.volume.device()));
+  out.centroid.index_copy_(0, rows, part.centroid.to(out.centroid.device()));
+  out.second_moment.index_copy_(0, rows, part.second_moment.to(out.second_moment.device()));
+  out.status.index_copy_(0, rows, part.status.to(out.status.device()));
+  out.num_neighbors.index_copy_(0, rows, part.num_neighbors.to(out.num_neighbors.device()));
 }
 
 // One pass over `cells` (int32 point ids), in chunks of bounded memory.
@@ -108,10 +147,12 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                         /*row_by_query=*/false, no_distances, neighbors);
-    if (pass.float64 || std::is_same<io_t, double>::value) {
-      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass, out);
+    if (pass.precision == Precision::kDoubleDouble) {
+      clip_chunk_double_double<io_t>(points, box, batch, part, neighbors, out);
+    } else if (pass.precision == Precision::kFloat64 || std::is_same<io_t, double>::value) {
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, out);
     } else {
-      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass, out);
+      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, out);
     }
   }
 }
@@ -171,7 +212,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   const int64_t largest_cloud = batch.has_value()
                                     ? at::bincount(*batch, {}, num_boxes).max().item<int64_t>()
                                     : n;
-  PassSettings pass{std::min(k, largest_cloud), 0, false, false};
+  PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
   at::Tensor pending = grid.sorted_index;  // grid order keeps neighbouring cells together
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
@@ -191,13 +232,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     if (any(core::kSecurityRadiusNotReached)) next.k = std::min(2 * pass.k, largest_cloud);
     if (any(core::kTooManyPlanes) || any(core::kTooManyVertices)) next.tier = std::min(pass.tier + 1, 2);
     if (any(core::kBoundaryError)) {
-      if (pass.float64 || is_double) next.loose = true;
-      next.float64 = true;
+      next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
+                                                                           : Precision::kDoubleDouble;
     }
-    if (next.k == pass.k && next.tier == pass.tier && next.float64 == pass.float64 &&
-        next.loose == pass.loose) {
-      break;
-    }
+    if (next == pass) break;  // nothing left to raise
     pass = next;
   }
   return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
