@@ -121,9 +121,9 @@ struct NeighborHeap {
     key[e] = item;
   }
 
-  // Heap sort into increasing order, then write (dist2, index) rows padded
-  // with (inf, -1); `dist2_out` may be null.
-  TV_HD void write_sorted(T* dist2_out, int32_t* index_out, T infinity) {
+  // Heap sort into increasing order, then write (dist2, index) padded with
+  // (inf, -1), element e at e * stride; `dist2_out` may be null.
+  TV_HD void write_sorted(T* dist2_out, int32_t* index_out, int64_t stride, T infinity) {
     for (int32_t n = size - 1; n > 0; --n) {
       const HeapKey<T> top = key[0];
       sift_down(0, n, key[n]);
@@ -131,8 +131,8 @@ struct NeighborHeap {
     }
     for (int32_t e = 0; e < capacity; ++e) {
       const bool real = e < size;
-      index_out[e] = real ? key[e].index() : -1;
-      if (dist2_out) dist2_out[e] = real ? key[e].dist2() : infinity;
+      index_out[e * stride] = real ? key[e].index() : -1;
+      if (dist2_out) dist2_out[e * stride] = real ? key[e].dist2() : infinity;
     }
   }
 };

@@ -15,13 +15,14 @@ struct CellIntegrals {
   int32_t neighbors;   // neighbours consumed before the radius of security
 };
 
-// `neighbors` lists k indices sorted by distance to the seed, padded with -1
-// when the whole batch element has fewer points. Coordinates are read as io_t
+// `neighbors` lists k indices (the n-th at neighbors[n * stride]) sorted by
+// distance to the seed, padded with -1 when the batch element has fewer points. Coordinates are read as io_t
 // and computed in T (T may be wider, for the float64 recovery pass).
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename io_t>
 TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& cell,
                                     const io_t* points, int32_t seed_index,
-                                    const int32_t* neighbors, int32_t k, const io_t* box,
+                                    const int32_t* neighbors, int64_t stride, int32_t k,
+                                    const io_t* box,
                                     T relative_tolerance, int band_widenings) {
   const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
                         T(points[3 * seed_index + 2])};
@@ -34,7 +35,7 @@ TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& ce
   out.neighbors = k;
   Vec3<T> previous = {T(0), T(0), T(0)};
   for (int32_t n = 0; n < k; ++n) {
-    const int32_t j = neighbors[n];
+    const int32_t j = neighbors[n * stride];
     if (j < 0) {  // every point of the batch element has been used
       out.status = kSuccess;
       out.neighbors = n;

@@ -7,6 +7,9 @@ namespace torchvor {
 namespace cpu {
 
 struct CpuExec {
+  // A cell reads its neighbour list in one cache line or two: row-major.
+  static constexpr bool kColumnMajorNeighbors = false;
+
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {
     // Small grains: the work per index varies a lot (cells near the box,

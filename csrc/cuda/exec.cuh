@@ -17,6 +17,9 @@ struct CudaExec {
   // 128 threads per block: a sweep of 32-256 threads and of residency caps
   // changed nothing or made it slower (benchmarks/NOTES.md).
   static constexpr int kThreads = 128;
+  // Neighbour n of cell t at n * chunk + t: a warp's 32 cells read and write
+  // one contiguous line per neighbour instead of 32 scattered ones.
+  static constexpr bool kColumnMajorNeighbors = true;
 
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {

@@ -31,10 +31,11 @@ struct KnnFunctor {
   int32_t k;
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
+  int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
 
   TV_HD void operator()(int64_t t) const {
     const int32_t q = order[t];
-    const int64_t row = (row_by_query ? q : t) * int64_t(k);
+    const int64_t row = (row_by_query ? q : t) * row_stride;
     const int64_t b = query_batch ? query_batch[q] : 0;
     const core::Vec3<T> query = core::load_vec3(queries + 3 * int64_t(q));
     const T inf = T(1) / T(0);
@@ -42,21 +43,24 @@ struct KnnFunctor {
       core::HeapKey<T> storage[K_MAX];
       core::NeighborHeap<T> heap{storage, k, 0};
       core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
-      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, inf);
+      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
     } else {
-      core::NeighborHeap<T> heap{scratch + row, k, 0};
+      core::NeighborHeap<T> heap{scratch + (row_by_query ? q : t) * int64_t(k), k, 0};
       core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
-      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, inf);
+      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
     }
   }
 };
 
 // Runs the search for `count` queries with the smallest heap tier holding k.
-// `dist2` may be undefined when only indices are wanted.
+// `dist2` may be undefined when only indices are wanted. Results are (rows, k)
+// row-major, or (k, rows) column-major when `column_major` (coalesced on GPUs).
 template <typename Exec, typename T>
 void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* query_batch,
              const int32_t* order, int64_t count, int64_t k, bool exclude_self,
-             bool row_by_query, at::Tensor& dist2, at::Tensor& index) {
+             bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
+  const int64_t rows = index.numel() / k;
+  const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
   const auto launch = [&](auto k_max) {
     constexpr int K_MAX = decltype(k_max)::value;
     at::Tensor scratch;
@@ -68,7 +72,8 @@ void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* que
                                  dist2.defined() ? dist2.data_ptr<T>() : nullptr,
                                  index.data_ptr<int32_t>(),
                                  scratch.defined() ? reinterpret_cast<core::HeapKey<T>*>(scratch.data_ptr<uint8_t>()) : nullptr,
-                                 static_cast<int32_t>(k), exclude_self, row_by_query};
+                                 static_cast<int32_t>(k), exclude_self, row_by_query,
+                                 row_stride, column_stride};
     Exec::for_each(count, functor);
   };
   if (k <= 16) launch(std::integral_constant<int, 16>());
@@ -124,7 +129,7 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
     run_knn<Exec, scalar_t>(grid.view<scalar_t>(), queries.data_ptr<scalar_t>(),
                             queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
                             order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
-                            dist2, index32);
+                            /*column_major=*/false, dist2, index32);
   });
   return {dist2, index32.to(at::kLong)};
 }

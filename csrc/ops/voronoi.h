@@ -29,8 +29,10 @@ struct ClipFunctor {
   const io_t* box;             // (B, 2, 3)
   const int64_t* batch;        // (N,) or nullptr
   const int32_t* cells;        // (chunk,) cell (= point) ids
-  const int32_t* neighbors;    // (chunk, k)
+  const int32_t* neighbors;    // (chunk, k) row-major, or (k, chunk) if neighbors_column_major
   int32_t k;
+  bool neighbors_column_major;
+  int32_t chunk;               // cells in this chunk (the column stride)
   T tolerance;
   int band_widenings;          // > 0 only in the last-resort pass
   bool rows_by_step;           // write row t (chunk-local outputs) instead of row cells[t]
@@ -45,7 +47,9 @@ struct ClipFunctor {
     const int64_t b = batch ? batch[cell_id] : 0;
     core::ConvexCell<T, MAX_PLANES, 2 * MAX_PLANES> cell;
     const core::CellIntegrals<T> out = core::compute_cell(
-        cell, points, cell_id, neighbors + t * int64_t(k), k, box + 6 * b, tolerance, band_widenings);
+        cell, points, cell_id, neighbors + (neighbors_column_major ? t : t * int64_t(k)),
+        neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b, tolerance,
+        band_widenings);
     const int64_t i = rows_by_step ? t : cell_id;
     volume[i] = static_cast<io_t>(out.volume);
     centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
@@ -77,13 +81,14 @@ struct VoronoiOutputs {
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                const at::Tensor& neighbors, int band_widenings, bool rows_by_step,
-                VoronoiOutputs& out) {
+                const at::Tensor& neighbors, bool column_major, int band_widenings,
+                bool rows_by_step, VoronoiOutputs& out) {
   ClipFunctor<io_t, T, MAX_PLANES> functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
       cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
-      static_cast<int32_t>(neighbors.size(1)), T(core::ClipTolerance<T>::value),
+      static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
+      T(core::ClipTolerance<T>::value),
       band_widenings,                 rows_by_step,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
@@ -96,9 +101,9 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                      const at::Tensor& neighbors, int tier, VoronoiOutputs& out) {
   switch (tier) {
-    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, 0, false, out); break;
-    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, 0, false, out); break;
-    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, 0, false, out); break;
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
   }
 }
 
@@ -108,7 +113,7 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
 template <typename io_t>
 void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                              const at::Tensor& neighbors, VoronoiOutputs& out) {
+                              const at::Tensor& neighbors, bool column_major, VoronoiOutputs& out) {
   const int64_t m = cells.size(0);
   const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU).contiguous(); };
   const c10::optional<at::Tensor> batch_cpu =
@@ -121,8 +126,8 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
   part.status = at::empty({m}, options.dtype(at::kChar));
   part.num_neighbors = at::empty({m}, options.dtype(at::kInt));
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
-      cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), /*band_widenings=*/6,
-      /*rows_by_step=*/true, part);
+      cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
+      /*band_widenings=*/6, /*rows_by_step=*/true, part);
   const at::Tensor rows = cells.to(at::kLong);
   out.volume.index_copy_(0, rows, part.volume.to(out.volume.device()));
   out.centroid.index_copy_(0, rows, part.centroid.to(out.centroid.device()));
@@ -142,13 +147,15 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
     const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
     const int64_t m = part.size(0);
     at::Tensor no_distances;  // the clipper recomputes distances from coordinates
+    // m * k neighbour ids, laid out as Exec prefers (see kColumnMajorNeighbors)
     at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
     run_knn<Exec, io_t>(grid.view<io_t>(), points.data_ptr<io_t>(),
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
-                        /*row_by_query=*/false, no_distances, neighbors);
+                        /*row_by_query=*/false, Exec::kColumnMajorNeighbors, no_distances, neighbors);
     if (pass.precision == Precision::kDoubleDouble) {
-      clip_chunk_double_double<io_t>(points, box, batch, part, neighbors, out);
+      clip_chunk_double_double<io_t>(points, box, batch, part, neighbors,
+                                     Exec::kColumnMajorNeighbors, out);
     } else if (pass.precision == Precision::kFloat64 || std::is_same<io_t, double>::value) {
       clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, out);
     } else {
