@@ -22,7 +22,8 @@ inline std::string shape_string(const at::Tensor& t) {
 
 inline void check_points(const at::Tensor& points, const char* name) {
   TORCH_CHECK_TYPE(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
-                   "torchvor: ", name, " must be float32 or float64, got ", points.scalar_type());
+                   "torchvor: ", name, " must be float32 or float64, got ",
+                   c10::toString(points.scalar_type()));
   TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) == 3, "torchvor: ", name,
                     " must have shape (N, 3), got ", shape_string(points));
   TORCH_CHECK_VALUE(points.size(0) < (int64_t(1) << 31) - 1, "torchvor: ", name,
@@ -37,8 +38,10 @@ inline void check_finite(const at::Tensor& points, const char* name) {
 
 inline void check_same_device(const at::Tensor& a, const char* a_name, const at::Tensor& b,
                               const char* b_name) {
-  TORCH_CHECK_VALUE(a.device() == b.device(), "torchvor: ", b_name, " is on ", b.device(),
-                    " but ", a_name, " is on ", a.device());
+  // Device::str(), not operator<<: streaming c10 types from nvcc-compiled code
+  // crashed on the GPU machine (see shape_string).
+  TORCH_CHECK_VALUE(a.device() == b.device(), "torchvor: ", b_name, " is on ", b.device().str(),
+                    " but ", a_name, " is on ", a.device().str());
 }
 
 // A batch vector (PyG convention): int64, shape (n,), sorted, non-negative.
@@ -48,7 +51,7 @@ inline int64_t check_batch(const c10::optional<at::Tensor>& batch, int64_t n, co
   if (!batch.has_value()) return 1;
   const at::Tensor& b = *batch;
   TORCH_CHECK_TYPE(b.scalar_type() == at::kLong, "torchvor: ", name, " must be int64, got ",
-                   b.scalar_type());
+                   c10::toString(b.scalar_type()));
   TORCH_CHECK_VALUE(b.dim() == 1 && b.size(0) == n, "torchvor: ", name, " must have shape (",
                     n, ",), got ", shape_string(b));
   check_same_device(like, "points", b, name);

@@ -99,8 +99,9 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   check_points(queries_in, "queries");
   check_same_device(points_in, "points", queries_in, "queries");
   TORCH_CHECK_TYPE(points_in.scalar_type() == queries_in.scalar_type(),
-                   "torchvor: queries must have the dtype of points (", points_in.scalar_type(),
-                   "), got ", queries_in.scalar_type());
+                   "torchvor: queries must have the dtype of points (",
+                   c10::toString(points_in.scalar_type()), "), got ",
+                   c10::toString(queries_in.scalar_type()));
   TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
   TORCH_CHECK_VALUE(k < (int64_t(1) << 31), "torchvor: k is too large: ", k);
   TORCH_CHECK_VALUE(points_batch.has_value() == queries_batch.has_value(),

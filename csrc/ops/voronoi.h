@@ -171,8 +171,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   check_points(points_in, "points");
   check_same_device(points_in, "points", box_in, "box");
   TORCH_CHECK_TYPE(box_in.scalar_type() == points_in.scalar_type(),
-                   "torchvor: box must have the dtype of points (", points_in.scalar_type(),
-                   "), got ", box_in.scalar_type());
+                   "torchvor: box must have the dtype of points (",
+                   c10::toString(points_in.scalar_type()), "), got ",
+                   c10::toString(box_in.scalar_type()));
   TORCH_CHECK_VALUE(box_in.dim() == 3 && box_in.size(1) == 2 && box_in.size(2) == 3,
                     "torchvor: box must have shape (B, 2, 3), got ", shape_string(box_in));
   TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
