@@ -45,7 +45,8 @@ def want_cuda():
 def extension():
     here = os.path.dirname(os.path.abspath(__file__))
     sources = [os.path.relpath(p, here) for p in sorted(glob.glob(os.path.join(here, "csrc", "*.cpp")))]
-    sources += [os.path.relpath(p, here) for p in sorted(glob.glob(os.path.join(here, "csrc", "cpu", "*.cpp")))]
+    for folder in ("ops", "cpu"):
+        sources += [os.path.relpath(p, here) for p in sorted(glob.glob(os.path.join(here, "csrc", folder, "*.cpp")))]
     # -fopenmp on compile and link: without it at::parallel_for silently runs on one thread.
     cxx = ["-O3", "-std=c++17", "-fopenmp", "-g0"]
     link = ["-fopenmp"]

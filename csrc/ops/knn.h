@@ -95,32 +95,14 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   };
   const c10::optional<at::Tensor> points_batch = contiguous(points_batch_in);
   const c10::optional<at::Tensor> queries_batch = contiguous(queries_batch_in);
-  check_points(points_in, "points");
-  check_points(queries_in, "queries");
-  check_same_device(points_in, "points", queries_in, "queries");
-  TORCH_CHECK_TYPE(points_in.scalar_type() == queries_in.scalar_type(),
-                   "torchvor: queries must have the dtype of points (",
-                   c10::toString(points_in.scalar_type()), "), got ",
-                   c10::toString(queries_in.scalar_type()));
-  TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
-  TORCH_CHECK_VALUE(k < (int64_t(1) << 31), "torchvor: k is too large: ", k);
-  TORCH_CHECK_VALUE(points_batch.has_value() == queries_batch.has_value(),
-                    "torchvor: give both batch and query_batch, or neither");
-  const int64_t n = points_in.size(0), m = queries_in.size(0);
-  if (exclude_self) {
-    TORCH_CHECK_VALUE(n == m, "torchvor: exclude_self needs queries to be the points");
-  }
-  const int64_t points_batches = check_batch(points_batch, n, points_in, "batch");
-  const int64_t query_batches = check_batch(queries_batch, m, points_in, "query_batch");
-  check_finite(points_in, "points");
-  check_finite(queries_in, "queries");
-
+  const int64_t num_batches =
+      check_knn_inputs(points_in, queries_in, k, points_batch, queries_batch, exclude_self);
+  const int64_t m = queries_in.size(0);
   at::Tensor dist2 = at::empty({m, k}, queries_in.options());
   at::Tensor index32 = at::empty({m, k}, queries_in.options().dtype(at::kInt));
   if (m == 0) return {dist2, index32.to(at::kLong)};
   const at::Tensor points = points_in.contiguous();
   const at::Tensor queries = queries_in.contiguous();
-  const int64_t num_batches = std::max(points_batches, query_batches);
   const Grid grid = build_grid(points, points_batch, num_batches, points_per_cell_for(k));
   // Visit queries in grid order: neighbouring queries read the same cells.
   const at::Tensor order = exclude_self && !points_batch.has_value()

@@ -168,32 +168,13 @@ template <typename Exec>
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_forward(
     const at::Tensor& points_in, const at::Tensor& box_in, const c10::optional<at::Tensor>& batch_in,
     int64_t k, int64_t memory_budget) {
-  check_points(points_in, "points");
-  check_same_device(points_in, "points", box_in, "box");
-  TORCH_CHECK_TYPE(box_in.scalar_type() == points_in.scalar_type(),
-                   "torchvor: box must have the dtype of points (",
-                   c10::toString(points_in.scalar_type()), "), got ",
-                   c10::toString(box_in.scalar_type()));
-  TORCH_CHECK_VALUE(box_in.dim() == 3 && box_in.size(1) == 2 && box_in.size(2) == 3,
-                    "torchvor: box must have shape (B, 2, 3), got ", shape_string(box_in));
-  TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
-  TORCH_CHECK_VALUE(memory_budget >= 1, "torchvor: memory_budget must be positive");
+  check_voronoi_inputs(points_in, box_in, batch_in, k, memory_budget);
   const int64_t n = points_in.size(0);
   const int64_t num_boxes = box_in.size(0);
-  const int64_t batches = check_batch(batch_in, n, points_in, "batch");
-  TORCH_CHECK_VALUE(batch_in.has_value() || num_boxes == 1,
-                    "torchvor: without a batch vector, box must have shape (1, 2, 3)");
-  TORCH_CHECK_VALUE(batches <= num_boxes, "torchvor: batch refers to ", batches,
-                    " point clouds but box holds ", num_boxes);
-  check_finite(points_in, "points");
-  check_finite(box_in, "box");
   const at::Tensor points = points_in.contiguous();
   const at::Tensor box = box_in.contiguous();
   const c10::optional<at::Tensor> batch =
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
-  TORCH_CHECK_VALUE((box.select(1, 0) <= box.select(1, 1)).all().item<bool>(),
-                    "torchvor: box must satisfy lo <= hi on every axis");
-
   VoronoiOutputs out;
   const auto options = points.options();
   out.volume = at::full({n}, NAN, options);
@@ -203,15 +184,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   out.num_neighbors = at::zeros({n}, options.dtype(at::kInt));
   if (n == 0) {
     return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
-  }
-  {  // every point inside its box
-    at::Tensor lo = box.select(1, 0), hi = box.select(1, 1);
-    if (batch.has_value()) {
-      lo = lo.index_select(0, *batch);
-      hi = hi.index_select(0, *batch);
-    }
-    TORCH_CHECK_VALUE(((points >= lo) & (points <= hi)).all().item<bool>(),
-                      "torchvor: points must lie inside box (lo <= p <= hi)");
   }
 
   const Grid grid = build_grid(points, batch, num_boxes, points_per_cell_for(k));

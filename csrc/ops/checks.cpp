@@ -1,0 +1,128 @@
+#include "checks.h"
+
+#include <string>
+
+namespace torchvor {
+namespace ops {
+namespace {
+
+// "(20, 2)": formatted by hand because streaming c10::IntArrayRef from code
+// compiled by nvcc crashed on the GPU machine (torch 2.11, nvcc 13.0).
+std::string shape_string(const at::Tensor& t) {
+  std::string text = "(";
+  for (int64_t d = 0; d < t.dim(); ++d) {
+    if (d > 0) text += ", ";
+    text += std::to_string(t.size(d));
+  }
+  return text + (t.dim() == 1 ? ",)" : ")");
+}
+
+void check_points(const at::Tensor& points, const char* name) {
+  TORCH_CHECK_TYPE(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
+                   "torchvor: ", name, " must be float32 or float64, got ",
+                   c10::toString(points.scalar_type()));
+  TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) == 3, "torchvor: ", name,
+                    " must have shape (N, 3), got ", shape_string(points));
+  TORCH_CHECK_VALUE(points.size(0) < (int64_t(1) << 31) - 1, "torchvor: ", name,
+                    " has too many points (at most 2^31 - 2)");
+}
+
+void check_finite(const at::Tensor& points, const char* name) {
+  if (points.numel() == 0) return;
+  TORCH_CHECK_VALUE(at::isfinite(points).all().item<bool>(), "torchvor: ", name,
+                    " contains NaN or Inf coordinates");
+}
+
+void check_same_device(const at::Tensor& a, const char* a_name, const at::Tensor& b,
+                              const char* b_name) {
+  // Device::str(), not operator<<: streaming c10 types from nvcc-compiled code
+  // crashed on the GPU machine (see shape_string).
+  TORCH_CHECK_VALUE(a.device() == b.device(), "torchvor: ", b_name, " is on ", b.device().str(),
+                    " but ", a_name, " is on ", a.device().str());
+}
+
+// A batch vector (PyG convention): int64, shape (n,), sorted, non-negative.
+// Returns the number of batch elements it implies (max + 1; 1 if undefined).
+int64_t check_batch(const c10::optional<at::Tensor>& batch, int64_t n, const at::Tensor& like,
+                           const char* name) {
+  if (!batch.has_value()) return 1;
+  const at::Tensor& b = *batch;
+  TORCH_CHECK_TYPE(b.scalar_type() == at::kLong, "torchvor: ", name, " must be int64, got ",
+                   c10::toString(b.scalar_type()));
+  TORCH_CHECK_VALUE(b.dim() == 1 && b.size(0) == n, "torchvor: ", name, " must have shape (",
+                    n, ",), got ", shape_string(b));
+  check_same_device(like, "points", b, name);
+  if (n == 0) return 1;
+  TORCH_CHECK_VALUE(b.min().item<int64_t>() >= 0, "torchvor: ", name,
+                    " must be non-negative");
+  if (n > 1) {
+    TORCH_CHECK_VALUE((b.slice(0, 1) >= b.slice(0, 0, n - 1)).all().item<bool>(), "torchvor: ",
+                      name, " must be sorted in non-decreasing order");
+  }
+  return b[n - 1].item<int64_t>() + 1;
+}
+
+
+}  // namespace
+
+int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, int64_t k,
+                         const c10::optional<at::Tensor>& points_batch,
+                         const c10::optional<at::Tensor>& queries_batch, bool exclude_self) {
+  check_points(points, "points");
+  check_points(queries, "queries");
+  check_same_device(points, "points", queries, "queries");
+  TORCH_CHECK_TYPE(points.scalar_type() == queries.scalar_type(),
+                   "torchvor: queries must have the dtype of points (",
+                   c10::toString(points.scalar_type()), "), got ",
+                   c10::toString(queries.scalar_type()));
+  TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
+  TORCH_CHECK_VALUE(k < (int64_t(1) << 31), "torchvor: k is too large: ", k);
+  TORCH_CHECK_VALUE(points_batch.has_value() == queries_batch.has_value(),
+                    "torchvor: give both batch and query_batch, or neither");
+  const int64_t n = points.size(0), m = queries.size(0);
+  if (exclude_self) {
+    TORCH_CHECK_VALUE(n == m, "torchvor: exclude_self needs queries to be the points");
+  }
+  const int64_t points_batches = check_batch(points_batch, n, points, "batch");
+  const int64_t query_batches = check_batch(queries_batch, m, points, "query_batch");
+  check_finite(points, "points");
+  check_finite(queries, "queries");
+  return std::max(points_batches, query_batches);
+}
+
+void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
+                          const c10::optional<at::Tensor>& batch, int64_t k,
+                          int64_t memory_budget) {
+  check_points(points, "points");
+  check_same_device(points, "points", box, "box");
+  TORCH_CHECK_TYPE(box.scalar_type() == points.scalar_type(),
+                   "torchvor: box must have the dtype of points (",
+                   c10::toString(points.scalar_type()), "), got ",
+                   c10::toString(box.scalar_type()));
+  TORCH_CHECK_VALUE(box.dim() == 3 && box.size(1) == 2 && box.size(2) == 3,
+                    "torchvor: box must have shape (B, 2, 3), got ", shape_string(box));
+  TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
+  TORCH_CHECK_VALUE(memory_budget >= 1, "torchvor: memory_budget must be positive");
+  const int64_t n = points.size(0);
+  const int64_t num_boxes = box.size(0);
+  const int64_t batches = check_batch(batch, n, points, "batch");
+  TORCH_CHECK_VALUE(batch.has_value() || num_boxes == 1,
+                    "torchvor: without a batch vector, box must have shape (1, 2, 3)");
+  TORCH_CHECK_VALUE(batches <= num_boxes, "torchvor: batch refers to ", batches,
+                    " point clouds but box holds ", num_boxes);
+  check_finite(points, "points");
+  check_finite(box, "box");
+  TORCH_CHECK_VALUE((box.select(1, 0) <= box.select(1, 1)).all().item<bool>(),
+                    "torchvor: box must satisfy lo <= hi on every axis");
+  if (n == 0) return;
+  at::Tensor lo = box.select(1, 0), hi = box.select(1, 1);
+  if (batch.has_value()) {
+    lo = lo.index_select(0, *batch);
+    hi = hi.index_select(0, *batch);
+  }
+  TORCH_CHECK_VALUE(((points >= lo) & (points <= hi)).all().item<bool>(),
+                    "torchvor: points must lie inside box (lo <= p <= hi)");
+}
+
+}  // namespace ops
+}  // namespace torchvor
