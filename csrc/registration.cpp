@@ -10,9 +10,10 @@ TORCH_LIBRARY(torchvor, m) {
       "bool exclude_self=False) -> (Tensor dist2, Tensor idx)");
   // Voronoi cells of points clipped to box (B, 2, 3): volume (N,), centroid
   // (N, 3), second moment about the seed (N,), status (N,) int8, and the
-  // number of neighbours each cell needed (N,) int32.
+  // number of neighbours each cell needed (N,) int32. k: first-pass
+  // neighbours; None measures it on a pilot sample of cells.
   m.def(
-      "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int k=40, "
+      "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=268435456) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors)");
 }

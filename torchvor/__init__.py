@@ -7,3 +7,10 @@ from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi
 
 __all__ = ["KNN", "CellStatus", "VoronoiCells", "knn", "knn_graph", "voronoi"]
 __version__ = "0.1.0"
+# Lloyd relaxation layer. Note: the function torchvor.lloyd shadows the module
+# attribute of the same name; import module contents with `from torchvor.lloyd import ...`.
+from .cvt import cvt_energy
+from .lloyd import LloydStep, lloyd
+from .nn import LloydRelaxation
+
+__all__ += ["cvt_energy", "lloyd", "LloydStep", "LloydRelaxation"]

@@ -196,8 +196,10 @@ def voronoi(
         box: None (bounding box of the points, per batch element), ``(lo, hi)``,
             a (2, 3) tensor, or (B, 2, 3) with ``batch``.
         batch: optional (N,) int64 sorted batch vector: each cloud is its own diagram.
-        k: neighbours fetched per cell in the first pass (default 40); failed
-            cells are retried with more.
+        k: neighbours fetched per cell in the first pass; cells that need more
+            are retried with twice as many. Default None: measured on a pilot
+            sample of about 1000 cells (their 90th percentile), which suits
+            blue noise (~16) and white noise (~60) alike.
         on_failure: what a cell that cannot be computed even after recovery does:
             ``"raise"`` (RuntimeError), ``"warn"`` (default: RuntimeWarning, NaN
             outputs) or ``"flag"`` (NaN outputs and status only).
@@ -215,7 +217,6 @@ def voronoi(
         raise ValueError(f"torchvor.voronoi: on_failure must be 'raise', 'warn' or 'flag', got {on_failure!r}")
     _check_tensor(points, "points")
     box_tensor = as_box(points, box, batch)
-    k = 40 if k is None else k
     cells = VoronoiCells(*torch.ops.torchvor.voronoi_cells.default(points, box_tensor, batch, k, memory_budget))
     if on_failure != "flag" and not torch.compiler.is_compiling():
         failed = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
@@ -246,7 +247,7 @@ def _knn_fake(points, queries, k, batch=None, query_batch=None, exclude_self=Fal
 
 
 @torch.library.register_fake("torchvor::voronoi_cells")
-def _voronoi_cells_fake(points, box, batch=None, k=40, memory_budget=256 << 20):
+def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=256 << 20):
     n = points.shape[0]
     return (
         points.new_empty((n,)),

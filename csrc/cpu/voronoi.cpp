@@ -8,7 +8,7 @@ namespace cpu {
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
-    int64_t k, int64_t memory_budget) {
+    c10::optional<int64_t> k, int64_t memory_budget) {
   return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget);
 }
 

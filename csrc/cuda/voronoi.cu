@@ -9,7 +9,7 @@ namespace cuda {
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
-    int64_t k, int64_t memory_budget) {
+    c10::optional<int64_t> k, int64_t memory_budget) {
   const c10::cuda::CUDAGuard guard(points.device());
   return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget);
 }

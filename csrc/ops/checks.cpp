@@ -91,7 +91,7 @@ int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, in
 }
 
 void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
-                          const c10::optional<at::Tensor>& batch, int64_t k,
+                          const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                           int64_t memory_budget) {
   check_points(points, "points");
   check_same_device(points, "points", box, "box");
@@ -101,7 +101,7 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                    c10::toString(box.scalar_type()));
   TORCH_CHECK_VALUE(box.dim() == 3 && box.size(1) == 2 && box.size(2) == 3,
                     "torchvor: box must have shape (B, 2, 3), got ", shape_string(box));
-  TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
+  if (k.has_value()) TORCH_CHECK_VALUE(*k >= 1, "torchvor: k must be at least 1, got ", *k);
   TORCH_CHECK_VALUE(memory_budget >= 1, "torchvor: memory_budget must be positive");
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);

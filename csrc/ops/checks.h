@@ -22,7 +22,7 @@ int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, in
 // Validates the arguments of torchvor::voronoi_cells, including that every
 // point lies inside its box.
 void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
-                          const c10::optional<at::Tensor>& batch, int64_t k,
+                          const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                           int64_t memory_budget);
 
 }  // namespace ops
