@@ -8,6 +8,9 @@ mkdir -p "$OUT"
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 cd "$REPO"
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TORCHVOR_FORCE_CUDA=1
+# The image's default CXX (/opt/gcc/bin/g++) links libstdc++ statically into
+# the extension, and then every error message that formats a number segfaults.
+export CXX=/usr/bin/g++ CC=/usr/bin/gcc
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 echo "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}" | tee -a "$OUT/gpu.txt"
 start=$(date +%s)

@@ -6,8 +6,7 @@ namespace torchvor {
 namespace ops {
 namespace {
 
-// "(20, 2)": formatted by hand because streaming c10::IntArrayRef from code
-// compiled by nvcc crashed on the GPU machine (torch 2.11, nvcc 13.0).
+// "(20, 2)", the way Python prints a shape.
 std::string shape_string(const at::Tensor& t) {
   std::string text = "(";
   for (int64_t d = 0; d < t.dim(); ++d) {
@@ -35,8 +34,6 @@ void check_finite(const at::Tensor& points, const char* name) {
 
 void check_same_device(const at::Tensor& a, const char* a_name, const at::Tensor& b,
                               const char* b_name) {
-  // Device::str(), not operator<<: streaming c10 types from nvcc-compiled code
-  // crashed on the GPU machine (see shape_string).
   TORCH_CHECK_VALUE(a.device() == b.device(), "torchvor: ", b_name, " is on ", b.device().str(),
                     " but ", a_name, " is on ", a.device().str());
 }

@@ -1,9 +1,7 @@
 // Argument checks of every op. They raise Python exceptions that name the
 // argument: TORCH_CHECK_VALUE -> ValueError, TORCH_CHECK_TYPE -> TypeError.
 //
-// Defined in checks.cpp, compiled by the host compiler only: formatting a
-// number or a c10 type into a message from nvcc-compiled host code segfaulted
-// on the GPU machine (torch 2.11, nvcc 13.0), so no .cu file formats messages.
+// Defined once in checks.cpp, so both backends share one set of messages.
 #pragma once
 
 #include <ATen/ATen.h>
