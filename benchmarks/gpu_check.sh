@@ -22,9 +22,9 @@ for step in "${@:-smoke}"; do
     smoke) python3 benchmarks/gpu_smoke.py --sizes 100000,1000000,10000000 2>&1 | tee "$OUT/smoke.log" || status=1 ;;
     tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -15 || status=1 ;;
     bench)
-      python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered 2>&1 | tee "$OUT/bench_knn.log"
+      python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered --methods torchvor,ckdtree 2>&1 | tee "$OUT/bench_knn.log"
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
-      python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M 2>&1 | tee "$OUT/bench_voronoi.log"
+      python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
     ncu)
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
