@@ -10,6 +10,10 @@
 #include <cmath>
 #include <cstring>
 
+#if !defined(__CUDA_ARCH__)
+#include <algorithm>
+#endif
+
 #include "common.h"
 
 namespace torchvor {
@@ -123,12 +127,17 @@ struct NeighborHeap {
 
   // Heap sort into increasing order, then write (dist2, index) padded with
   // (inf, -1), element e at e * stride; `dist2_out` may be null.
-  TV_HD void write_sorted(T* dist2_out, int32_t* index_out, int64_t stride, T infinity) {
-    for (int32_t n = size - 1; n > 0; --n) {
+  template <typename index_t>
+  TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
+#if defined(__CUDA_ARCH__)
+    for (int32_t n = size - 1; n > 0; --n) {  // heap sort: no extra memory
       const HeapKey<T> top = key[0];
       sift_down(0, n, key[n]);
       key[n] = top;
     }
+#else
+    std::sort(key, key + size);  // the host's introsort; same order, fewer branches
+#endif
     for (int32_t e = 0; e < capacity; ++e) {
       const bool real = e < size;
       index_out[e * stride] = real ? key[e].index() : -1;

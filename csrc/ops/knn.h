@@ -19,14 +19,14 @@ namespace ops {
 // (dist2, index). With K_MAX > 0 the heap lives in per-thread arrays (on the
 // GPU: local memory, interleaved across a warp's lanes and cached in L1);
 // K_MAX == 0 keeps it in a global scratch buffer, for any k.
-template <typename T, int K_MAX>
+template <typename T, int K_MAX, typename index_t>
 struct KnnFunctor {
   core::GridView<T> grid;
   const T* queries;              // (M, 3)
   const int64_t* query_batch;    // (M,) or nullptr
   const int32_t* order;          // processing order: query id of step t
   T* dist2;                      // (rows, k), or nullptr when only indices are wanted
-  int32_t* index;                // (rows, k)
+  index_t* index;                // (rows, k): int64 for the public op, int32 inside Voronoi
   core::HeapKey<T>* scratch;     // (rows, k) heap storage when K_MAX == 0
   int32_t k;
   bool exclude_self;             // queries are the points: skip point q for query q
@@ -55,7 +55,7 @@ struct KnnFunctor {
 // Runs the search for `count` queries with the smallest heap tier holding k.
 // `dist2` may be undefined when only indices are wanted. Results are (rows, k)
 // row-major, or (k, rows) column-major when `column_major` (coalesced on GPUs).
-template <typename Exec, typename T>
+template <typename Exec, typename T, typename index_t>
 void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* query_batch,
              const int32_t* order, int64_t count, int64_t k, bool exclude_self,
              bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
@@ -68,9 +68,9 @@ void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* que
       scratch = at::empty({index.numel() * int64_t(sizeof(core::HeapKey<T>))},
                           index.options().dtype(at::kByte));
     }
-    KnnFunctor<T, K_MAX> functor{grid, queries, query_batch, order,
+    KnnFunctor<T, K_MAX, index_t> functor{grid, queries, query_batch, order,
                                  dist2.defined() ? dist2.data_ptr<T>() : nullptr,
-                                 index.data_ptr<int32_t>(),
+                                 index.data_ptr<index_t>(),
                                  scratch.defined() ? reinterpret_cast<core::HeapKey<T>*>(scratch.data_ptr<uint8_t>()) : nullptr,
                                  static_cast<int32_t>(k), exclude_self, row_by_query,
                                  row_stride, column_stride};
@@ -99,8 +99,8 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
       check_knn_inputs(points_in, queries_in, k, points_batch, queries_batch, exclude_self);
   const int64_t m = queries_in.size(0);
   at::Tensor dist2 = at::empty({m, k}, queries_in.options());
-  at::Tensor index32 = at::empty({m, k}, queries_in.options().dtype(at::kInt));
-  if (m == 0) return {dist2, index32.to(at::kLong)};
+  at::Tensor index = at::empty({m, k}, queries_in.options().dtype(at::kLong));
+  if (m == 0) return {dist2, index};
   const at::Tensor points = points_in.contiguous();
   const at::Tensor queries = queries_in.contiguous();
   const Grid grid = build_grid(points, points_batch, num_batches, points_per_cell_for(k));
@@ -109,12 +109,12 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
                                ? grid.sorted_index
                                : cell_ids(queries, queries_batch, grid).argsort().to(at::kInt);
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
-    run_knn<Exec, scalar_t>(grid.view<scalar_t>(), queries.data_ptr<scalar_t>(),
+    run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), queries.data_ptr<scalar_t>(),
                             queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
                             order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
-                            /*column_major=*/false, dist2, index32);
+                            /*column_major=*/false, dist2, index);
   });
-  return {dist2, index32.to(at::kLong)};
+  return {dist2, index};
 }
 
 }  // namespace ops
