@@ -226,15 +226,11 @@ struct ConvexCell {
       start = from;
       ++length;
     }
-    if (length < 3) return false;
-    uint8_t from = start;  // the successor map must be one cycle through all edges
-    for (int e = 0; e < length; ++e) {
-      from = next[from];
-      if (from == kNone) return false;
-    }
-    return from == start && cycle_length(next, start) == length;
+    // One simple cycle through every boundary edge (not several, not broken).
+    return length >= 3 && cycle_length(next, start) == length;
   }
 
+  // Edges on the way from `start` back to itself; stops early at a dead end.
   TV_HD static int cycle_length(const uint8_t* next, uint8_t start) {
     int length = 0;
     uint8_t from = start;
@@ -242,7 +238,7 @@ struct ConvexCell {
       from = next[from];
       ++length;
     } while (from != start && from != kNone && length <= MAX_PLANES);
-    return length;
+    return from == start ? length : -1;
   }
 
   // Drop the removed triangles, keeping the order of the others.
