@@ -59,6 +59,13 @@ int64_t check_batch(const c10::optional<at::Tensor>& batch, int64_t n, const at:
   return b[n - 1].item<int64_t>() + 1;
 }
 
+// `other` (a points-like tensor) must share the dtype and device of points.
+void check_like_points(const at::Tensor& points, const at::Tensor& other, const char* name) {
+  check_same_device(points, "points", other, name);
+  TORCH_CHECK_TYPE(other.scalar_type() == points.scalar_type(), "torchvor: ", name,
+                   " must have the dtype of points (", c10::toString(points.scalar_type()),
+                   "), got ", c10::toString(other.scalar_type()));
+}
 
 }  // namespace
 
@@ -67,11 +74,7 @@ int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, in
                          const c10::optional<at::Tensor>& queries_batch, bool exclude_self) {
   check_points(points, "points");
   check_points(queries, "queries");
-  check_same_device(points, "points", queries, "queries");
-  TORCH_CHECK_TYPE(points.scalar_type() == queries.scalar_type(),
-                   "torchvor: queries must have the dtype of points (",
-                   c10::toString(points.scalar_type()), "), got ",
-                   c10::toString(queries.scalar_type()));
+  check_like_points(points, queries, "queries");
   TORCH_CHECK_VALUE(k >= 1, "torchvor: k must be at least 1, got ", k);
   TORCH_CHECK_VALUE(k < (int64_t(1) << 31), "torchvor: k is too large: ", k);
   TORCH_CHECK_VALUE(points_batch.has_value() == queries_batch.has_value(),
@@ -91,11 +94,7 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                           const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                           int64_t memory_budget) {
   check_points(points, "points");
-  check_same_device(points, "points", box, "box");
-  TORCH_CHECK_TYPE(box.scalar_type() == points.scalar_type(),
-                   "torchvor: box must have the dtype of points (",
-                   c10::toString(points.scalar_type()), "), got ",
-                   c10::toString(box.scalar_type()));
+  check_like_points(points, box, "box");
   TORCH_CHECK_VALUE(box.dim() == 3 && box.size(1) == 2 && box.size(2) == 3,
                     "torchvor: box must have shape (B, 2, 3), got ", shape_string(box));
   if (k.has_value()) TORCH_CHECK_VALUE(*k >= 1, "torchvor: k must be at least 1, got ", *k);
