@@ -143,7 +143,7 @@ def check_global(cells, points, boxes, dtype, batch=None):
         err = (moment - box_volume * centre).abs().max().item()
         # relative to the box size, plus the rounding of absolute centroids (offsets)
         eps = float(torch.finfo(dtype).eps)
-        tol = box_volume * (10 * SUM_RTOL[dtype] * size + 4 * eps * float(np.abs(centre).max()))
+        tol = box_volume * (10 * SUM_RTOL[dtype] * size + 4 * eps * float(centre.abs().max()))
         assert err <= tol, (
             f"cloud {k}: sum(volume * centroid) {moment.tolist()} != box volume * centre "
             f"{(box_volume * centre).tolist()}")
