@@ -66,7 +66,7 @@ enum class Precision { kInput, kFloat64, kDoubleDouble };
 
 struct PassSettings {
   int64_t k;
-  int tier;            // 0, 1, 2, 3: at most 24, 32, 64, 160 planes
+  int tier;            // 0, 1, 2: at most 32, 64, 160 planes
   Precision precision;
 
   bool operator==(const PassSettings& o) const {
@@ -101,9 +101,8 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                      const at::Tensor& neighbors, int tier, VoronoiOutputs& out) {
   switch (tier) {
-    case 0: clip_chunk<Exec, io_t, T, 24>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
-    case 1: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
-    case 2: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
     default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
   }
 }
@@ -176,7 +175,7 @@ int64_t pilot_k(const Grid& grid, int64_t largest_cloud, const Run& run, Voronoi
   const int64_t n = grid.sorted_index.size(0);
   const int64_t stride = std::max<int64_t>(1, n / 1024);
   const at::Tensor sample = grid.sorted_index.slice(0, 0, n, stride).contiguous();
-  run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 1, Precision::kInput});
+  run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput});
   const at::Tensor needed = out.num_neighbors.index_select(0, sample).to(at::kFloat);
   const int64_t p90 = static_cast<int64_t>(at::quantile(needed, 0.9).item<float>());
   return std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2));
@@ -216,9 +215,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     });
   };
   const int64_t k = k_in.has_value() ? *k_in : pilot_k<Exec>(grid, largest_cloud, run, out);
-  // Regular point sets (a small first-pass k) have small cells: a smaller
-  // array tier keeps the per-thread state, which bounds the GPU kernel, small.
-  PassSettings pass{std::min(k, largest_cloud), k <= 32 ? 0 : 1, Precision::kInput};
+  PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
   at::Tensor pending = grid.sorted_index;  // grid order keeps neighbouring cells together
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
@@ -234,7 +231,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     };
     PassSettings next = pass;
     if (any(core::kSecurityRadiusNotReached)) next.k = std::min(2 * pass.k, largest_cloud);
-    if (any(core::kTooManyPlanes) || any(core::kTooManyVertices)) next.tier = std::min(pass.tier + 1, 3);
+    if (any(core::kTooManyPlanes) || any(core::kTooManyVertices)) next.tier = std::min(pass.tier + 1, 2);
     if (any(core::kBoundaryError)) {
       next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
                                                                            : Precision::kDoubleDouble;
