@@ -189,7 +189,8 @@ def voronoi(
     Each cell is computed on its own by clipping the box with the bisectors of
     its nearest neighbours until the radius of security proves it exact (Ray et
     al. 2018). Cells that need more neighbours or larger arrays are recomputed
-    automatically, then in float64 with a looser predicate; nothing fails silently.
+    automatically; cells whose predicates are inconsistent are recomputed in
+    float64, then in double-double arithmetic on the CPU. Nothing fails silently.
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``.
