@@ -1,0 +1,45 @@
+// torchvor::cpu_threads_used: how many threads CpuExec (the executor of every
+// CPU kernel) really runs on. A build without -fopenmp compiles
+// at::parallel_for to a serial loop without any warning; the tests compare
+// this with torch.get_num_threads().
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include <atomic>
+#include <chrono>
+#include <mutex>
+#include <set>
+#include <thread>
+
+#include "exec.h"
+
+namespace torchvor {
+namespace cpu {
+namespace {
+
+struct RecordThread {
+  std::mutex* mutex;
+  std::set<int>* threads;
+  void operator()(int64_t) const {
+    // Long enough per index that the pool cannot finish before every thread starts.
+    std::this_thread::sleep_for(std::chrono::microseconds(200));
+    std::lock_guard<std::mutex> lock(*mutex);
+    threads->insert(at::get_thread_num());
+  }
+};
+
+int64_t cpu_threads_used() {
+  std::mutex mutex;
+  std::set<int> threads;
+  CpuExec::for_each(64 * int64_t(at::get_num_threads()), RecordThread{&mutex, &threads});
+  return static_cast<int64_t>(threads.size());
+}
+
+}  // namespace
+
+TORCH_LIBRARY_FRAGMENT(torchvor, m) {
+  m.def("cpu_threads_used() -> int", &cpu_threads_used);
+}
+
+}  // namespace cpu
+}  // namespace torchvor
