@@ -4,6 +4,8 @@ Prints agreement of knn / voronoi between devices on fresh random inputs and
 CUDA-event timings of the issue's headline sizes. Not a test: it reports.
 """
 import argparse
+import os
+import sys
 import time
 
 import torch
@@ -11,19 +13,13 @@ import torch
 import torchvor
 from torchvor import samples
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402  (benchmarks/common.py, shared timing helpers)
+
 
 def cuda_time(fn, repeats=5):
-    fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        fn()
-        end.record()
-        torch.cuda.synchronize()
-        times.append(start.elapsed_time(end))
-    return sorted(times)[len(times) // 2]
+    """Median milliseconds of fn on the GPU (benchmarks/common.py's timer)."""
+    return 1e3 * common.time_fn(fn, "cuda", warmup=1, repeats=repeats)
 
 
 def parity():

@@ -71,10 +71,4 @@ def blue_noise(n: int, *, iters: int = 100, seed: Optional[int] = 0, dtype=torch
     return lloyd(points, ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), iters=iters)
 
 
-def cube_edge(n: int) -> int:
-    """Edge of the grid that perturbed_grid / jittered_grid use for about n points."""
-    return max(1, round(n ** (1.0 / 3.0)))
-
-
-__all__ = ["white_noise", "lattice", "perturbed_grid", "jittered_grid", "clustered", "blue_noise",
-           "cube_edge"]
+__all__ = ["white_noise", "lattice", "perturbed_grid", "jittered_grid", "clustered", "blue_noise"]

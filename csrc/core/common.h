@@ -26,8 +26,6 @@ struct Plane {  // inside iff dot(normal, x) + offset > 0
 };
 
 template <typename T>
-TV_HD Vec3<T> make_vec3(T x, T y, T z) { return Vec3<T>{x, y, z}; }
-template <typename T>
 TV_HD Vec3<T> operator+(Vec3<T> a, Vec3<T> b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
 template <typename T>
 TV_HD Vec3<T> operator-(Vec3<T> a, Vec3<T> b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
@@ -44,8 +42,6 @@ TV_HD T det3(Vec3<T> a, Vec3<T> b, Vec3<T> c) { return dot(a, cross(b, c)); }
 
 template <typename T>
 TV_HD Vec3<T> load_vec3(const T* p) { return {p[0], p[1], p[2]}; }
-template <typename T>
-TV_HD void store_vec3(T* p, Vec3<T> v) { p[0] = v.x; p[1] = v.y; p[2] = v.z; }
 
 // Squared distance rounded identically on host and device: nvcc would fuse the
 // multiply-adds (FMA) and the host compiler would not, and kNN promises bitwise
