@@ -66,6 +66,17 @@ TV_HD T squared_distance(Vec3<T> a, Vec3<T> b) {
   return (mul_rn(dx, dx) + mul_rn(dy, dy)) + mul_rn(dz, dz);
 }
 
+// A per-item scratch array whose element e lives at data[e * stride]. The CPU
+// gives each item a contiguous array (stride 1); the GPU interleaves the
+// arrays of a block's threads in shared memory (stride = block size), so a
+// warp's 32 lanes always hit 32 different banks, whatever index each reads.
+template <typename Slot>
+struct StridedArray {
+  Slot* data;
+  int64_t stride;
+  TV_HD Slot& operator[](int64_t e) const { return data[e * stride]; }
+};
+
 template <typename T>
 TV_HD T min_of(T a, T b) { return a < b ? a : b; }
 template <typename T>

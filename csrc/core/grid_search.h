@@ -89,7 +89,7 @@ template <> struct HeapKey<double> {
 // Max-heap of candidate keys: the root is the worst of the k best so far.
 template <typename T>
 struct NeighborHeap {
-  HeapKey<T>* key;
+  StridedArray<HeapKey<T>> key;  // capacity slots
   int32_t capacity;
   int32_t size;
 
@@ -102,8 +102,9 @@ struct NeighborHeap {
       int32_t e = size++;
       while (e > 0) {
         const int32_t parent = (e - 1) >> 1;
-        if (!(key[parent] < candidate)) break;
-        key[e] = key[parent];
+        const HeapKey<T> above = key[parent];
+        if (!(above < candidate)) break;
+        key[e] = above;
         e = parent;
       }
       key[e] = candidate;
@@ -117,9 +118,16 @@ struct NeighborHeap {
     while (true) {
       int32_t child = 2 * e + 1;
       if (child >= n) break;
-      if (child + 1 < n && key[child] < key[child + 1]) ++child;
-      if (!(item < key[child])) break;
-      key[e] = key[child];
+      HeapKey<T> larger = key[child];
+      if (child + 1 < n) {
+        const HeapKey<T> right = key[child + 1];
+        if (larger < right) {
+          larger = right;
+          ++child;
+        }
+      }
+      if (!(item < larger)) break;
+      key[e] = larger;
       e = child;
     }
     key[e] = item;
@@ -129,15 +137,18 @@ struct NeighborHeap {
   // (inf, -1), element e at e * stride; `dist2_out` may be null.
   template <typename index_t>
   TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
-#if defined(__CUDA_ARCH__)
-    for (int32_t n = size - 1; n > 0; --n) {  // heap sort: no extra memory
-      const HeapKey<T> top = key[0];
-      sift_down(0, n, key[n]);
-      key[n] = top;
-    }
-#else
-    std::sort(key, key + size);  // the host's introsort; same order, fewer branches
+#if !defined(__CUDA_ARCH__)
+    if (key.stride == 1) {
+      std::sort(key.data, key.data + size);  // the host's introsort; same order, fewer branches
+    } else
 #endif
+    {
+      for (int32_t n = size - 1; n > 0; --n) {  // heap sort: no extra memory
+        const HeapKey<T> top = key[0];
+        sift_down(0, n, key[n]);
+        key[n] = top;
+      }
+    }
     for (int32_t e = 0; e < capacity; ++e) {
       const bool real = e < size;
       index_out[e * stride] = real ? key[e].index() : -1;

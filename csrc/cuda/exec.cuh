@@ -1,8 +1,13 @@
 // Runs a functor over [0, n) as one CUDA kernel on the current stream.
 #pragma once
 
+#include <ATen/ATen.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDAException.h>
+
+#include <algorithm>
+
+#include "../core/common.h"
 
 namespace torchvor {
 namespace cuda {
@@ -11,6 +16,23 @@ template <typename Functor>
 __global__ void for_each_kernel(int64_t n, Functor functor) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i < n) functor(i);
+}
+
+// Scratch in dynamic shared memory, slot e of thread x at e * blockDim + x.
+template <typename Slot, typename Functor>
+__global__ void for_each_shared_scratch_kernel(int64_t n, Functor functor) {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  Slot* slots = reinterpret_cast<Slot*>(shared_bytes);
+  if (i < n) functor(i, core::StridedArray<Slot>{slots + threadIdx.x, int64_t(blockDim.x)});
+}
+
+// Scratch in global memory when it does not fit on chip: slot e of item i at
+// e * n + i (a warp's lanes read consecutive addresses for the same e).
+template <typename Slot, typename Functor>
+__global__ void for_each_global_scratch_kernel(int64_t n, Slot* slots, Functor functor) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) functor(i, core::StridedArray<Slot>{slots + i, n});
 }
 
 struct CudaExec {
@@ -26,6 +48,39 @@ struct CudaExec {
     if (n == 0) return;
     const int64_t blocks = (n + kThreads - 1) / kThreads;
     for_each_kernel<<<blocks, kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+
+  // functor(i, scratch) with `slots` Slots of scratch per item, in shared
+  // memory (at most half of an SM's per block, so that two blocks fit; fewer
+  // threads per block for large scratch), or in global memory beyond that.
+  template <typename Slot, typename Functor>
+  static void for_each_with_scratch(int64_t n, int64_t slots, const Functor& functor) {
+    if (n == 0) return;
+    const auto stream = at::cuda::getCurrentCUDAStream();
+    const int64_t bytes_per_item = slots * int64_t(sizeof(Slot));
+    int device = 0, max_shared = 0;
+    C10_CUDA_CHECK(cudaGetDevice(&device));
+    C10_CUDA_CHECK(cudaDeviceGetAttribute(&max_shared, cudaDevAttrMaxSharedMemoryPerBlockOptin, device));
+    int threads = kThreads;
+    while (threads > 32 && threads * bytes_per_item > max_shared / 2) threads /= 2;
+    const int64_t shared_bytes = threads * bytes_per_item;
+    if (shared_bytes <= max_shared) {
+      const auto kernel = for_each_shared_scratch_kernel<Slot, Functor>;
+      if (shared_bytes > 48 * 1024) {
+        C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                            static_cast<int>(shared_bytes)));
+      }
+      const int64_t blocks = (n + threads - 1) / threads;
+      kernel<<<blocks, threads, shared_bytes, stream>>>(n, functor);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+      return;
+    }
+    const at::Tensor scratch = at::empty({n * bytes_per_item},
+                                         at::TensorOptions().dtype(at::kByte).device(at::kCUDA, device));
+    const int64_t blocks = (n + kThreads - 1) / kThreads;
+    for_each_global_scratch_kernel<Slot, Functor><<<blocks, kThreads, 0, stream>>>(
+        n, reinterpret_cast<Slot*>(scratch.data_ptr<uint8_t>()), functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 };

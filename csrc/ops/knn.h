@@ -16,72 +16,50 @@ namespace torchvor {
 namespace ops {
 
 // Query t of `order` -> its k nearest points, written to row `row(t)` of
-// (dist2, index). With K_MAX > 0 the heap lives in per-thread arrays (on the
-// GPU: local memory, interleaved across a warp's lanes and cached in L1);
-// K_MAX == 0 keeps it in a global scratch buffer, for any k.
-template <typename T, int K_MAX, typename index_t>
+// (dist2, index). The heap lives in a k-slot scratch array that the executor
+// provides: a contiguous array per CPU thread, shared memory interleaved
+// across a block's threads on the GPU.
+template <typename T, typename index_t>
 struct KnnFunctor {
+  using Slot = core::HeapKey<T>;
   core::GridView<T> grid;
   const T* queries;              // (M, 3)
   const int64_t* query_batch;    // (M,) or nullptr
   const int32_t* order;          // processing order: query id of step t
   T* dist2;                      // (rows, k), or nullptr when only indices are wanted
   index_t* index;                // (rows, k): int64 for the public op, int32 inside Voronoi
-  core::HeapKey<T>* scratch;     // (rows, k) heap storage when K_MAX == 0
   int32_t k;
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
   int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
 
-  TV_HD void operator()(int64_t t) const {
+  TV_HD void operator()(int64_t t, core::StridedArray<Slot> scratch) const {
     const int32_t q = order[t];
     const int64_t row = (row_by_query ? q : t) * row_stride;
     const int64_t b = query_batch ? query_batch[q] : 0;
     const core::Vec3<T> query = core::load_vec3(queries + 3 * int64_t(q));
     const T inf = T(1) / T(0);
-    if constexpr (K_MAX > 0) {
-      core::HeapKey<T> storage[K_MAX];
-      core::NeighborHeap<T> heap{storage, k, 0};
-      core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
-      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
-    } else {
-      core::NeighborHeap<T> heap{scratch + (row_by_query ? q : t) * int64_t(k), k, 0};
-      core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
-      heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
-    }
+    core::NeighborHeap<T> heap{scratch, k, 0};
+    core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
+    heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
   }
 };
 
-// Runs the search for `count` queries with the smallest heap tier holding k.
-// `dist2` may be undefined when only indices are wanted. Results are (rows, k)
-// row-major, or (k, rows) column-major when `column_major` (coalesced on GPUs).
+// Runs the search for `count` queries. `dist2` may be undefined when only
+// indices are wanted. Results are (rows, k) row-major, or (k, rows)
+// column-major when `column_major` (coalesced on GPUs).
 template <typename Exec, typename T, typename index_t>
 void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* query_batch,
              const int32_t* order, int64_t count, int64_t k, bool exclude_self,
              bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
   const int64_t rows = index.numel() / k;
   const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
-  const auto launch = [&](auto k_max) {
-    constexpr int K_MAX = decltype(k_max)::value;
-    at::Tensor scratch;
-    if (K_MAX == 0) {
-      scratch = at::empty({index.numel() * int64_t(sizeof(core::HeapKey<T>))},
-                          index.options().dtype(at::kByte));
-    }
-    KnnFunctor<T, K_MAX, index_t> functor{grid, queries, query_batch, order,
+  KnnFunctor<T, index_t> functor{grid, queries, query_batch, order,
                                  dist2.defined() ? dist2.data_ptr<T>() : nullptr,
                                  index.data_ptr<index_t>(),
-                                 scratch.defined() ? reinterpret_cast<core::HeapKey<T>*>(scratch.data_ptr<uint8_t>()) : nullptr,
                                  static_cast<int32_t>(k), exclude_self, row_by_query,
                                  row_stride, column_stride};
-    Exec::for_each(count, functor);
-  };
-  if (k <= 16) launch(std::integral_constant<int, 16>());
-  else if (k <= 32) launch(std::integral_constant<int, 32>());
-  else if (k <= 64) launch(std::integral_constant<int, 64>());
-  else if (k <= 128) launch(std::integral_constant<int, 128>());
-  else if (k <= 256) launch(std::integral_constant<int, 256>());
-  else launch(std::integral_constant<int, 0>());
+  Exec::template for_each_with_scratch<typename KnnFunctor<T, index_t>::Slot>(count, k, functor);
 }
 
 template <typename Exec>
