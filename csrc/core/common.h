@@ -77,6 +77,27 @@ struct StridedArray {
   TV_HD Slot& operator[](int64_t e) const { return data[e * stride]; }
 };
 
+// Working memory of one item (a kNN query, a cell), handed out by the
+// executor: `lanes` items share the region at `base`, each array interleaved
+// across them (this item is `lane`). Arrays are carved in order by take().
+struct ScratchArena {
+  unsigned char* base;
+  int64_t lane, lanes;
+  int64_t used = 0;  // bytes per lane handed out so far
+
+  // Bytes per lane that take<Slot>(count) uses (16-byte aligned regions).
+  template <typename Slot>
+  TV_HD static constexpr int64_t bytes(int64_t count) {
+    return (count * int64_t(sizeof(Slot)) + 15) / 16 * 16;
+  }
+  template <typename Slot>
+  TV_HD StridedArray<Slot> take(int64_t count) {
+    Slot* region = reinterpret_cast<Slot*>(base + used * lanes);
+    used += bytes<Slot>(count);
+    return {region + lane, lanes};
+  }
+};
+
 template <typename T>
 TV_HD T min_of(T a, T b) { return a < b ? a : b; }
 template <typename T>

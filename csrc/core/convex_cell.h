@@ -23,14 +23,45 @@ template <> struct ClipTolerance<float> { static constexpr float value = 2e-6f; 
 template <> struct ClipTolerance<double> { static constexpr double value = 1e-13; };
 template <> struct ClipTolerance<DoubleDouble> { static constexpr double value = 1e-28; };
 
+// Where a cell keeps its planes, its triangles (three uint8 plane ids packed
+// in one uint32: one load per triangle) and its cached vertex positions.
+// FixedCellArrays: arrays of the cell itself (a CPU thread's stack, GPU local
+// memory). StridedCellArrays: views into executor scratch, interleaved across
+// a GPU block's threads in shared memory (see StridedArray).
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
+struct FixedCellArrays {
+  Plane<T> plane[MAX_PLANES];
+  uint32_t triangle[MAX_TRIANGLES];
+  Vec3<T> vertex[MAX_TRIANGLES];
+};
+
+template <typename T>
+struct StridedCellArrays {
+  StridedArray<Plane<T>> plane;
+  StridedArray<uint32_t> triangle;
+  StridedArray<Vec3<T>> vertex;
+
+  // Scratch bytes per cell for the given capacities.
+  static int64_t scratch_bytes(int max_planes, int max_triangles) {
+    return ScratchArena::bytes<Plane<T>>(max_planes) + ScratchArena::bytes<uint32_t>(max_triangles) +
+           ScratchArena::bytes<Vec3<T>>(max_triangles);
+  }
+  TV_HD static StridedCellArrays take(ScratchArena& arena, int max_planes, int max_triangles) {
+    StridedCellArrays arrays;
+    arrays.plane = arena.take<Plane<T>>(max_planes);
+    arrays.triangle = arena.take<uint32_t>(max_triangles);
+    arrays.vertex = arena.take<Vec3<T>>(max_triangles);
+    return arrays;
+  }
+};
+
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES,
+          typename Arrays = FixedCellArrays<T, MAX_PLANES, MAX_TRIANGLES>>
 struct ConvexCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
 
-  Plane<T> plane[MAX_PLANES];
-  uint8_t triangle[MAX_TRIANGLES][3];
-  Vec3<T> vertex[MAX_TRIANGLES];
+  Arrays store;  // planes, triangles, vertices
   int32_t num_planes;
   int32_t num_triangles;
   T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
@@ -39,22 +70,25 @@ struct ConvexCell {
   int max_band_widenings;  // retries of an inconsistent clip with a 10x wider band
   int8_t status;
 
+  TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
+  TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
+
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
-    plane[0] = {{T(1), T(0), T(0)}, -lo.x};
-    plane[1] = {{T(-1), T(0), T(0)}, hi.x};
-    plane[2] = {{T(0), T(1), T(0)}, -lo.y};
-    plane[3] = {{T(0), T(-1), T(0)}, hi.y};
-    plane[4] = {{T(0), T(0), T(1)}, -lo.z};
-    plane[5] = {{T(0), T(0), T(-1)}, hi.z};
+    store.plane[0] = {{T(1), T(0), T(0)}, -lo.x};
+    store.plane[1] = {{T(-1), T(0), T(0)}, hi.x};
+    store.plane[2] = {{T(0), T(1), T(0)}, -lo.y};
+    store.plane[3] = {{T(0), T(-1), T(0)}, hi.y};
+    store.plane[4] = {{T(0), T(0), T(1)}, -lo.z};
+    store.plane[5] = {{T(0), T(0), T(-1)}, hi.z};
     num_planes = 6;
     const uint8_t box[8][3] = {{2, 5, 0}, {5, 3, 0}, {1, 5, 2}, {5, 1, 3},
                                {4, 2, 0}, {4, 0, 3}, {2, 4, 1}, {4, 3, 1}};
     num_triangles = 8;
     radius2_bound = T(0);
     for (int t = 0; t < 8; ++t) {
-      set_triangle(t, box[t][0], box[t][1], box[t][2]);
-      radius2_bound = max_of(radius2_bound, dot(vertex[t], vertex[t]));
+      const Vec3<T> v = set_triangle(t, box[t][0], box[t][1], box[t][2]);
+      radius2_bound = max_of(radius2_bound, dot(v, v));
     }
     radius_stale = false;
     tolerance = relative_tolerance;
@@ -64,9 +98,9 @@ struct ConvexCell {
 
   // Intersection point of three planes (Cramer's rule).
   TV_HD Vec3<T> intersect(int a, int b, int c) const {
-    const Plane<T>& pa = plane[a];
-    const Plane<T>& pb = plane[b];
-    const Plane<T>& pc = plane[c];
+    const Plane<T> pa = store.plane[a];
+    const Plane<T> pb = store.plane[b];
+    const Plane<T> pc = store.plane[c];
     const Vec3<T> bc = cross(pb.normal, pc.normal);
     const Vec3<T> ca = cross(pc.normal, pa.normal);
     const Vec3<T> ab = cross(pa.normal, pb.normal);
@@ -75,18 +109,22 @@ struct ConvexCell {
     return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
   }
 
-  TV_HD void set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
-    triangle[t][0] = a;
-    triangle[t][1] = b;
-    triangle[t][2] = c;
-    vertex[t] = intersect(a, b, c);
+  // Store triangle t = (a, b, c) and its vertex; returns the vertex.
+  TV_HD Vec3<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
+    store.triangle[t] = pack(a, b, c);
+    const Vec3<T> v = intersect(a, b, c);
+    store.vertex[t] = v;
+    return v;
   }
 
   // Exact squared radius of the ball around the seed holding the cell.
   TV_HD T radius2() {
     if (radius_stale) {
       T r2 = T(0);
-      for (int t = 0; t < num_triangles; ++t) r2 = max_of(r2, dot(vertex[t], vertex[t]));
+      for (int t = 0; t < num_triangles; ++t) {
+        const Vec3<T> v = store.vertex[t];
+        r2 = max_of(r2, dot(v, v));
+      }
       radius2_bound = r2;
       radius_stale = false;
     }
@@ -129,14 +167,13 @@ struct ConvexCell {
     if (num_triangles - removed_count(clipped) + boundary_length > MAX_TRIANGLES)
       return fail(kTooManyVertices);
     const int new_plane = num_planes++;
-    plane[new_plane] = p;
+    store.plane[new_plane] = p;
     compact_kept(clipped);
     // Close the hole with a fan of triangles (s, t, p) along the boundary cycle.
     uint8_t from = start;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
-      set_triangle(num_triangles, from, to, static_cast<uint8_t>(new_plane));
-      const Vec3<T> v = vertex[num_triangles];
+      const Vec3<T> v = set_triangle(num_triangles, from, to, static_cast<uint8_t>(new_plane));
       const T v2 = dot(v, v);
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       radius2_bound = max_of(radius2_bound, v2);
@@ -155,9 +192,10 @@ struct ConvexCell {
     Vec3<T> m1 = {T(0), T(0), T(0)};
     T m2 = T(0);
     for (int t = 0; t < num_triangles; ++t) {
-      const Vec3<T> v = vertex[t];
+      const Vec3<T> v = store.vertex[t];
+      const uint32_t triangle = store.triangle[t];
       for (int e = 0; e < 3; ++e) {
-        const int a = triangle[t][e], b = triangle[t][(e + 1) % 3];
+        const int a = corner(triangle, e), b = corner(triangle, (e + 1) % 3);
         const Vec3<T> edge_foot = line_foot(a, b);
         add_tetrahedron(plane_foot(a), edge_foot, v, T(1), six_volume, m1, m2);
         add_tetrahedron(plane_foot(b), edge_foot, v, T(-1), six_volume, m1, m2);
@@ -182,7 +220,7 @@ struct ConvexCell {
     for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
     bool any_clipped = false;
     for (int t = 0; t < num_triangles; ++t) {
-      const bool outside = dot(p.normal, vertex[t]) + p.offset < threshold;
+      const bool outside = dot(p.normal, store.vertex[t]) + p.offset < threshold;
       clipped[t >> 5] |= uint32_t(outside) << (t & 31);
       any_clipped |= outside;
     }
@@ -207,7 +245,8 @@ struct ConvexCell {
     int removed_edges = 0;
     for (int t = 0; t < num_triangles; ++t) {
       if (!is_set(clipped, t)) continue;
-      const uint16_t a = triangle[t][0], b = triangle[t][1], c = triangle[t][2];
+      const uint32_t triangle = store.triangle[t];
+      const uint16_t a = corner(triangle, 0), b = corner(triangle, 1), c = corner(triangle, 2);
       edge[removed_edges++] = uint16_t(a << 8 | b);
       edge[removed_edges++] = uint16_t(b << 8 | c);
       edge[removed_edges++] = uint16_t(c << 8 | a);
@@ -247,8 +286,8 @@ struct ConvexCell {
     for (int t = 0; t < num_triangles; ++t) {
       if (is_set(clipped, t)) continue;
       if (kept != t) {
-        for (int e = 0; e < 3; ++e) triangle[kept][e] = triangle[t][e];
-        vertex[kept] = vertex[t];
+        store.triangle[kept] = store.triangle[t];
+        store.vertex[kept] = store.vertex[t];
       }
       ++kept;
     }
@@ -260,29 +299,34 @@ struct ConvexCell {
   TV_HD void compact_planes() {
     uint8_t renumber[MAX_PLANES];
     for (int q = 0; q < num_planes; ++q) renumber[q] = kNone;
-    for (int t = 0; t < num_triangles; ++t)
-      for (int e = 0; e < 3; ++e) renumber[triangle[t][e]] = 0;
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t triangle = store.triangle[t];
+      for (int e = 0; e < 3; ++e) renumber[corner(triangle, e)] = 0;
+    }
     int live = 0;
     for (int q = 0; q < num_planes; ++q) {
       if (renumber[q] == kNone) continue;
-      plane[live] = plane[q];
+      store.plane[live] = store.plane[q];
       renumber[q] = static_cast<uint8_t>(live++);
     }
-    for (int t = 0; t < num_triangles; ++t)
-      for (int e = 0; e < 3; ++e) triangle[t][e] = renumber[triangle[t][e]];
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t triangle = store.triangle[t];
+      store.triangle[t] = pack(renumber[corner(triangle, 0)], renumber[corner(triangle, 1)],
+                               renumber[corner(triangle, 2)]);
+    }
     num_planes = live;
   }
 
   // Orthogonal projection of the seed (origin) onto plane a.
   TV_HD Vec3<T> plane_foot(int a) const {
-    const Plane<T>& p = plane[a];
+    const Plane<T> p = store.plane[a];
     return (-p.offset / dot(p.normal, p.normal)) * p.normal;
   }
 
   // Orthogonal projection of the seed onto the line where planes a, b meet.
   TV_HD Vec3<T> line_foot(int a, int b) const {
-    const Plane<T>& pa = plane[a];
-    const Plane<T>& pb = plane[b];
+    const Plane<T> pa = store.plane[a];
+    const Plane<T> pb = store.plane[b];
     const Vec3<T> direction = cross(pa.normal, pb.normal);
     const T scale = T(-1) / dot(direction, direction);
     return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));

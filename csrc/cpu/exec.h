@@ -3,6 +3,7 @@
 
 #include <ATen/Parallel.h>
 
+#include <cstddef>
 #include <vector>
 
 #include "../core/common.h"
@@ -13,6 +14,8 @@ namespace cpu {
 struct CpuExec {
   // A cell reads its neighbour list in one cache line or two: row-major.
   static constexpr bool kColumnMajorNeighbors = false;
+  // A cell's arrays live on the thread's stack (in cache); no scratch needed.
+  static constexpr bool kCellsInScratch = false;
 
   // Small grains: the work per index varies a lot (cells near the box,
   // recovery passes), and the grid-ordered indices keep locality anyway.
@@ -25,14 +28,15 @@ struct CpuExec {
     });
   }
 
-  // functor(i, scratch): scratch is `slots` Slots of working memory for item
-  // i, reused by the next item of the same thread.
-  template <typename Slot, typename Functor>
-  static void for_each_with_scratch(int64_t n, int64_t slots, const Functor& functor) {
+  // functor(i, arena): `bytes` of working memory for item i (one lane),
+  // reused by the next item of the same thread.
+  template <typename Functor>
+  static void for_each_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
-      std::vector<Slot> scratch(static_cast<size_t>(slots));
-      const core::StridedArray<Slot> view{scratch.data(), 1};
-      for (int64_t i = begin; i < end; ++i) functor(i, view);
+      std::vector<std::max_align_t> scratch((bytes + sizeof(std::max_align_t) - 1) /
+                                            sizeof(std::max_align_t));
+      unsigned char* base = reinterpret_cast<unsigned char*>(scratch.data());
+      for (int64_t i = begin; i < end; ++i) functor(i, core::ScratchArena{base, 0, 1});
     });
   }
 };

@@ -18,21 +18,20 @@ __global__ void for_each_kernel(int64_t n, Functor functor) {
   if (i < n) functor(i);
 }
 
-// Scratch in dynamic shared memory, slot e of thread x at e * blockDim + x.
-template <typename Slot, typename Functor>
+// Scratch in dynamic shared memory, interleaved across the block's threads.
+template <typename Functor>
 __global__ void for_each_shared_scratch_kernel(int64_t n, Functor functor) {
   extern __shared__ __align__(16) unsigned char shared_bytes[];
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  Slot* slots = reinterpret_cast<Slot*>(shared_bytes);
-  if (i < n) functor(i, core::StridedArray<Slot>{slots + threadIdx.x, int64_t(blockDim.x)});
+  if (i < n) functor(i, core::ScratchArena{shared_bytes, threadIdx.x, blockDim.x});
 }
 
-// Scratch in global memory when it does not fit on chip: slot e of item i at
-// e * n + i (a warp's lanes read consecutive addresses for the same e).
-template <typename Slot, typename Functor>
-__global__ void for_each_global_scratch_kernel(int64_t n, Slot* slots, Functor functor) {
+// Scratch in global memory when it does not fit on chip, interleaved across
+// all n items (a warp's lanes read consecutive addresses for the same slot).
+template <typename Functor>
+__global__ void for_each_global_scratch_kernel(int64_t n, unsigned char* scratch, Functor functor) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i < n) functor(i, core::StridedArray<Slot>{slots + i, n});
+  if (i < n) functor(i, core::ScratchArena{scratch, i, n});
 }
 
 struct CudaExec {
@@ -42,6 +41,9 @@ struct CudaExec {
   // Neighbour n of cell t at n * chunk + t: a warp's 32 cells read and write
   // one contiguous line per neighbour instead of 32 scattered ones.
   static constexpr bool kColumnMajorNeighbors = true;
+  // First-tier float cells keep their arrays in shared memory: in local
+  // memory they overflow L1 and the clip kernel waits on L2 (ncu, NOTES.md).
+  static constexpr bool kCellsInScratch = true;
 
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {
@@ -51,14 +53,13 @@ struct CudaExec {
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 
-  // functor(i, scratch) with `slots` Slots of scratch per item, in shared
+  // functor(i, arena) with `bytes_per_item` of scratch per item, in shared
   // memory (at most half of an SM's per block, so that two blocks fit; fewer
   // threads per block for large scratch), or in global memory beyond that.
-  template <typename Slot, typename Functor>
-  static void for_each_with_scratch(int64_t n, int64_t slots, const Functor& functor) {
+  template <typename Functor>
+  static void for_each_with_scratch(int64_t n, int64_t bytes_per_item, const Functor& functor) {
     if (n == 0) return;
     const auto stream = at::cuda::getCurrentCUDAStream();
-    const int64_t bytes_per_item = slots * int64_t(sizeof(Slot));
     int device = 0, max_shared = 0;
     C10_CUDA_CHECK(cudaGetDevice(&device));
     C10_CUDA_CHECK(cudaDeviceGetAttribute(&max_shared, cudaDevAttrMaxSharedMemoryPerBlockOptin, device));
@@ -66,7 +67,7 @@ struct CudaExec {
     while (threads > 32 && threads * bytes_per_item > max_shared / 2) threads /= 2;
     const int64_t shared_bytes = threads * bytes_per_item;
     if (shared_bytes <= max_shared) {
-      const auto kernel = for_each_shared_scratch_kernel<Slot, Functor>;
+      const auto kernel = for_each_shared_scratch_kernel<Functor>;
       if (shared_bytes > 48 * 1024) {
         C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
                                             static_cast<int>(shared_bytes)));
@@ -79,8 +80,8 @@ struct CudaExec {
     const at::Tensor scratch = at::empty({n * bytes_per_item},
                                          at::TensorOptions().dtype(at::kByte).device(at::kCUDA, device));
     const int64_t blocks = (n + kThreads - 1) / kThreads;
-    for_each_global_scratch_kernel<Slot, Functor><<<blocks, kThreads, 0, stream>>>(
-        n, reinterpret_cast<Slot*>(scratch.data_ptr<uint8_t>()), functor);
+    for_each_global_scratch_kernel<Functor><<<blocks, kThreads, 0, stream>>>(
+        n, scratch.data_ptr<uint8_t>(), functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 };

@@ -21,7 +21,6 @@ namespace ops {
 // across a block's threads on the GPU.
 template <typename T, typename index_t>
 struct KnnFunctor {
-  using Slot = core::HeapKey<T>;
   core::GridView<T> grid;
   const T* queries;              // (M, 3)
   const int64_t* query_batch;    // (M,) or nullptr
@@ -33,13 +32,15 @@ struct KnnFunctor {
   bool row_by_query;             // row = query id (else row = t, chunk-local)
   int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
 
-  TV_HD void operator()(int64_t t, core::StridedArray<Slot> scratch) const {
+  static int64_t scratch_bytes(int64_t k) { return core::ScratchArena::bytes<core::HeapKey<T>>(k); }
+
+  TV_HD void operator()(int64_t t, core::ScratchArena scratch) const {
     const int32_t q = order[t];
     const int64_t row = (row_by_query ? q : t) * row_stride;
     const int64_t b = query_batch ? query_batch[q] : 0;
     const core::Vec3<T> query = core::load_vec3(queries + 3 * int64_t(q));
     const T inf = T(1) / T(0);
-    core::NeighborHeap<T> heap{scratch, k, 0};
+    core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
     core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
     heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
   }
@@ -59,7 +60,7 @@ void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* que
                                  index.data_ptr<index_t>(),
                                  static_cast<int32_t>(k), exclude_self, row_by_query,
                                  row_stride, column_stride};
-  Exec::template for_each_with_scratch<typename KnnFunctor<T, index_t>::Slot>(count, k, functor);
+  Exec::for_each_with_scratch(count, KnnFunctor<T, index_t>::scratch_bytes(k), functor);
 }
 
 template <typename Exec>
