@@ -98,6 +98,22 @@ struct ScratchArena {
   }
 };
 
+// Index of the lowest set bit (bits != 0) and number of set bits.
+TV_HD int lowest_bit(uint32_t bits) {
+#if defined(__CUDA_ARCH__)
+  return __ffs(bits) - 1;
+#else
+  return __builtin_ctz(bits);
+#endif
+}
+TV_HD int bit_count(uint32_t bits) {
+#if defined(__CUDA_ARCH__)
+  return __popc(bits);
+#else
+  return __builtin_popcount(bits);
+#endif
+}
+
 template <typename T>
 TV_HD T min_of(T a, T b) { return a < b ? a : b; }
 template <typename T>

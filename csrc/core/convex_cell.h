@@ -23,45 +23,14 @@ template <> struct ClipTolerance<float> { static constexpr float value = 2e-6f; 
 template <> struct ClipTolerance<double> { static constexpr double value = 1e-13; };
 template <> struct ClipTolerance<DoubleDouble> { static constexpr double value = 1e-28; };
 
-// Where a cell keeps its planes, its triangles (three uint8 plane ids packed
-// in one uint32: one load per triangle) and its cached vertex positions.
-// FixedCellArrays: arrays of the cell itself (a CPU thread's stack, GPU local
-// memory). StridedCellArrays: views into executor scratch, interleaved across
-// a GPU block's threads in shared memory (see StridedArray).
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
-struct FixedCellArrays {
-  Plane<T> plane[MAX_PLANES];
-  uint32_t triangle[MAX_TRIANGLES];
-  Vec3<T> vertex[MAX_TRIANGLES];
-};
-
-template <typename T>
-struct StridedCellArrays {
-  StridedArray<Plane<T>> plane;
-  StridedArray<uint32_t> triangle;
-  StridedArray<Vec3<T>> vertex;
-
-  // Scratch bytes per cell for the given capacities.
-  static int64_t scratch_bytes(int max_planes, int max_triangles) {
-    return ScratchArena::bytes<Plane<T>>(max_planes) + ScratchArena::bytes<uint32_t>(max_triangles) +
-           ScratchArena::bytes<Vec3<T>>(max_triangles);
-  }
-  TV_HD static StridedCellArrays take(ScratchArena& arena, int max_planes, int max_triangles) {
-    StridedCellArrays arrays;
-    arrays.plane = arena.take<Plane<T>>(max_planes);
-    arrays.triangle = arena.take<uint32_t>(max_triangles);
-    arrays.vertex = arena.take<Vec3<T>>(max_triangles);
-    return arrays;
-  }
-};
-
-template <typename T, int MAX_PLANES, int MAX_TRIANGLES,
-          typename Arrays = FixedCellArrays<T, MAX_PLANES, MAX_TRIANGLES>>
 struct ConvexCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
 
-  Arrays store;  // planes, triangles, vertices
+  Plane<T> plane[MAX_PLANES];
+  uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
+  Vec3<T> vertex[MAX_TRIANGLES];
   int32_t num_planes;
   int32_t num_triangles;
   T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
@@ -75,12 +44,12 @@ struct ConvexCell {
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
-    store.plane[0] = {{T(1), T(0), T(0)}, -lo.x};
-    store.plane[1] = {{T(-1), T(0), T(0)}, hi.x};
-    store.plane[2] = {{T(0), T(1), T(0)}, -lo.y};
-    store.plane[3] = {{T(0), T(-1), T(0)}, hi.y};
-    store.plane[4] = {{T(0), T(0), T(1)}, -lo.z};
-    store.plane[5] = {{T(0), T(0), T(-1)}, hi.z};
+    plane[0] = {{T(1), T(0), T(0)}, -lo.x};
+    plane[1] = {{T(-1), T(0), T(0)}, hi.x};
+    plane[2] = {{T(0), T(1), T(0)}, -lo.y};
+    plane[3] = {{T(0), T(-1), T(0)}, hi.y};
+    plane[4] = {{T(0), T(0), T(1)}, -lo.z};
+    plane[5] = {{T(0), T(0), T(-1)}, hi.z};
     num_planes = 6;
     const uint8_t box[8][3] = {{2, 5, 0}, {5, 3, 0}, {1, 5, 2}, {5, 1, 3},
                                {4, 2, 0}, {4, 0, 3}, {2, 4, 1}, {4, 3, 1}};
@@ -98,9 +67,9 @@ struct ConvexCell {
 
   // Intersection point of three planes (Cramer's rule).
   TV_HD Vec3<T> intersect(int a, int b, int c) const {
-    const Plane<T> pa = store.plane[a];
-    const Plane<T> pb = store.plane[b];
-    const Plane<T> pc = store.plane[c];
+    const Plane<T> pa = plane[a];
+    const Plane<T> pb = plane[b];
+    const Plane<T> pc = plane[c];
     const Vec3<T> bc = cross(pb.normal, pc.normal);
     const Vec3<T> ca = cross(pc.normal, pa.normal);
     const Vec3<T> ab = cross(pa.normal, pb.normal);
@@ -111,9 +80,9 @@ struct ConvexCell {
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
   TV_HD Vec3<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
-    store.triangle[t] = pack(a, b, c);
+    triangle[t] = pack(a, b, c);
     const Vec3<T> v = intersect(a, b, c);
-    store.vertex[t] = v;
+    vertex[t] = v;
     return v;
   }
 
@@ -122,7 +91,7 @@ struct ConvexCell {
     if (radius_stale) {
       T r2 = T(0);
       for (int t = 0; t < num_triangles; ++t) {
-        const Vec3<T> v = store.vertex[t];
+        const Vec3<T> v = vertex[t];
         r2 = max_of(r2, dot(v, v));
       }
       radius2_bound = r2;
@@ -164,22 +133,26 @@ struct ConvexCell {
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
       if (removed_boundary(clipped, next, boundary_length, start)) break;
     }
-    if (num_triangles - removed_count(clipped) + boundary_length > MAX_TRIANGLES)
-      return fail(kTooManyVertices);
+    const int removed = removed_count(clipped);
+    if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int new_plane = num_planes++;
-    store.plane[new_plane] = p;
-    compact_kept(clipped);
-    // Close the hole with a fan of triangles (s, t, p) along the boundary cycle.
+    plane[new_plane] = p;
+    // Close the hole with a fan of triangles (s, t, p) along the boundary
+    // cycle, written into the removed triangles' slots first and appended
+    // after the last one beyond that: no kept triangle moves. The order of
+    // triangles carries no meaning (the integrals are sums over them).
+    HoleCursor holes{clipped, 0, clipped[0]};
     uint8_t from = start;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
-      const Vec3<T> v = set_triangle(num_triangles, from, to, static_cast<uint8_t>(new_plane));
+      const int slot = e < removed ? holes.next() : num_triangles++;
+      const Vec3<T> v = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane));
       const T v2 = dot(v, v);
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       radius2_bound = max_of(radius2_bound, v2);
-      ++num_triangles;
       from = to;
     }
+    if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
     radius_stale = true;
     return true;
   }
@@ -192,10 +165,10 @@ struct ConvexCell {
     Vec3<T> m1 = {T(0), T(0), T(0)};
     T m2 = T(0);
     for (int t = 0; t < num_triangles; ++t) {
-      const Vec3<T> v = store.vertex[t];
-      const uint32_t triangle = store.triangle[t];
+      const Vec3<T> v = vertex[t];
+      const uint32_t corners = triangle[t];
       for (int e = 0; e < 3; ++e) {
-        const int a = corner(triangle, e), b = corner(triangle, (e + 1) % 3);
+        const int a = corner(corners, e), b = corner(corners, (e + 1) % 3);
         const Vec3<T> edge_foot = line_foot(a, b);
         add_tetrahedron(plane_foot(a), edge_foot, v, T(1), six_volume, m1, m2);
         add_tetrahedron(plane_foot(b), edge_foot, v, T(-1), six_volume, m1, m2);
@@ -220,7 +193,7 @@ struct ConvexCell {
     for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
     bool any_clipped = false;
     for (int t = 0; t < num_triangles; ++t) {
-      const bool outside = dot(p.normal, store.vertex[t]) + p.offset < threshold;
+      const bool outside = dot(p.normal, vertex[t]) + p.offset < threshold;
       clipped[t >> 5] |= uint32_t(outside) << (t & 31);
       any_clipped |= outside;
     }
@@ -229,41 +202,81 @@ struct ConvexCell {
 
   TV_HD static bool is_set(const uint32_t* bits, int t) { return (bits[t >> 5] >> (t & 31)) & 1u; }
 
-  TV_HD int removed_count(const uint32_t* clipped) const {
+  TV_HD static int removed_count(const uint32_t* clipped) {
+    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
     int count = 0;
-    for (int t = 0; t < num_triangles; ++t) count += is_set(clipped, t);
+    for (int w = 0; w < kWords; ++w) count += bit_count(clipped[w]);
     return count;
   }
 
+  // Walks the set bits of a triangle mask in increasing order.
+  struct HoleCursor {
+    const uint32_t* mask;
+    int word;
+    uint32_t bits;  // bits of mask[word] not visited yet
+    TV_HD int next() {  // requires a set bit left
+      while (bits == 0u) bits = mask[++word];
+      const int t = 32 * word + lowest_bit(bits);
+      bits &= bits - 1u;
+      return t;
+    }
+  };
+
+  // Fewer new triangles than removed ones: move kept triangles from the end
+  // into the `count` holes left, lowest hole first, and shorten the list.
+  TV_HD void fill_holes(HoleCursor& holes, int count, const uint32_t* clipped) {
+    int last = num_triangles - 1;  // the highest slot that may still hold a kept triangle
+    for (; count > 0; --count) {
+      const int hole = holes.next();
+      while (last > hole && is_set(clipped, last)) --last;  // drop holes at the end
+      if (last <= hole) {  // nothing kept above this hole: the list ends before it
+        last = min_of(last, hole - 1);
+        break;
+      }
+      triangle[hole] = triangle[last];
+      vertex[hole] = vertex[last];
+      --last;
+    }
+    num_triangles = last + 1;
+  }
+
+  // Whether a removed triangle has the directed edge from -> to.
+  TV_HD bool removed_edge(const uint32_t* clipped, uint32_t from, uint32_t to) const {
+    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
+    const uint32_t code = from | to << 8;
+    for (int w = 0; w < kWords; ++w) {
+      for (uint32_t bits = clipped[w]; bits != 0u; bits &= bits - 1u) {
+        const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
+        // its edges (a, b), (b, c), (c, a) as codes a | b << 8
+        if ((corners & 0xffffu) == code || (corners >> 8) == code ||
+            ((corners >> 16) | (corners & 0xffu) << 8) == code)
+          return true;
+      }
+    }
+    return false;
+  }
+
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
-  // reverse is not in R, as a successor map over plane ids. Edges are packed
-  // as 16-bit codes (from << 8 | to) so the reverse-edge search scans small
-  // integers. False if the boundary is not one simple cycle.
+  // reverse is not in R, as a successor map over plane ids. False if the
+  // boundary is not one simple cycle.
   TV_HD bool removed_boundary(const uint32_t* clipped, uint8_t* next, int& length,
                               uint8_t& start) const {
-    uint16_t edge[3 * MAX_TRIANGLES];
-    int removed_edges = 0;
-    for (int t = 0; t < num_triangles; ++t) {
-      if (!is_set(clipped, t)) continue;
-      const uint32_t triangle = store.triangle[t];
-      const uint16_t a = corner(triangle, 0), b = corner(triangle, 1), c = corner(triangle, 2);
-      edge[removed_edges++] = uint16_t(a << 8 | b);
-      edge[removed_edges++] = uint16_t(b << 8 | c);
-      edge[removed_edges++] = uint16_t(c << 8 | a);
-    }
+    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
     for (int q = 0; q < num_planes; ++q) next[q] = kNone;
     length = 0;
     start = kNone;
-    for (int e = 0; e < removed_edges; ++e) {
-      const uint16_t reverse = uint16_t((edge[e] & 0xff) << 8 | edge[e] >> 8);
-      bool interior = false;
-      for (int f = 0; f < removed_edges; ++f) interior |= (edge[f] == reverse);
-      if (interior) continue;
-      const uint8_t from = uint8_t(edge[e] >> 8), to = uint8_t(edge[e] & 0xff);
-      if (next[from] != kNone) return false;  // a vertex twice on the boundary
-      next[from] = to;
-      start = from;
-      ++length;
+    for (int w = 0; w < kWords; ++w) {
+      for (uint32_t bits = clipped[w]; bits != 0u; bits &= bits - 1u) {
+        const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
+        for (int e = 0; e < 3; ++e) {
+          const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+          if (removed_edge(clipped, to, from)) continue;  // interior edge
+          if (next[from] != kNone) return false;  // a vertex twice on the boundary
+          next[from] = to;
+          start = from;
+          ++length;
+        }
+      }
     }
     // One simple cycle through every boundary edge (not several, not broken).
     return length >= 3 && cycle_length(next, start) == length;
@@ -280,53 +293,39 @@ struct ConvexCell {
     return from == start ? length : -1;
   }
 
-  // Drop the removed triangles, keeping the order of the others.
-  TV_HD void compact_kept(const uint32_t* clipped) {
-    int kept = 0;
-    for (int t = 0; t < num_triangles; ++t) {
-      if (is_set(clipped, t)) continue;
-      if (kept != t) {
-        store.triangle[kept] = store.triangle[t];
-        store.vertex[kept] = store.vertex[t];
-      }
-      ++kept;
-    }
-    num_triangles = kept;
-  }
-
   // Drop planes that no vertex uses any more and renumber the rest, so that a
   // long clipping sequence does not overflow the plane array with dead planes.
   TV_HD void compact_planes() {
     uint8_t renumber[MAX_PLANES];
     for (int q = 0; q < num_planes; ++q) renumber[q] = kNone;
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t triangle = store.triangle[t];
-      for (int e = 0; e < 3; ++e) renumber[corner(triangle, e)] = 0;
+      const uint32_t corners = triangle[t];
+      for (int e = 0; e < 3; ++e) renumber[corner(corners, e)] = 0;
     }
     int live = 0;
     for (int q = 0; q < num_planes; ++q) {
       if (renumber[q] == kNone) continue;
-      store.plane[live] = store.plane[q];
+      plane[live] = plane[q];
       renumber[q] = static_cast<uint8_t>(live++);
     }
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t triangle = store.triangle[t];
-      store.triangle[t] = pack(renumber[corner(triangle, 0)], renumber[corner(triangle, 1)],
-                               renumber[corner(triangle, 2)]);
+      const uint32_t corners = triangle[t];
+      triangle[t] = pack(renumber[corner(corners, 0)], renumber[corner(corners, 1)],
+                         renumber[corner(corners, 2)]);
     }
     num_planes = live;
   }
 
   // Orthogonal projection of the seed (origin) onto plane a.
   TV_HD Vec3<T> plane_foot(int a) const {
-    const Plane<T> p = store.plane[a];
+    const Plane<T> p = plane[a];
     return (-p.offset / dot(p.normal, p.normal)) * p.normal;
   }
 
   // Orthogonal projection of the seed onto the line where planes a, b meet.
   TV_HD Vec3<T> line_foot(int a, int b) const {
-    const Plane<T> pa = store.plane[a];
-    const Plane<T> pb = store.plane[b];
+    const Plane<T> pa = plane[a];
+    const Plane<T> pb = plane[b];
     const Vec3<T> direction = cross(pa.normal, pb.normal);
     const T scale = T(-1) / dot(direction, direction);
     return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));

@@ -18,8 +18,8 @@ struct CellIntegrals {
 // `neighbors` lists k indices (the n-th at neighbors[n * stride]) sorted by
 // distance to the seed, padded with -1 when the batch element has fewer points. Coordinates are read as io_t
 // and computed in T (T may be wider, for the float64 recovery pass).
-template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename Arrays, typename io_t>
-TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES, Arrays>& cell,
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename io_t>
+TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& cell,
                                     const io_t* points, int32_t seed_index,
                                     const int32_t* neighbors, int64_t stride, int32_t k,
                                     const io_t* box,

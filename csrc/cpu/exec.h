@@ -14,8 +14,6 @@ namespace cpu {
 struct CpuExec {
   // A cell reads its neighbour list in one cache line or two: row-major.
   static constexpr bool kColumnMajorNeighbors = false;
-  // A cell's arrays live on the thread's stack (in cache); no scratch needed.
-  static constexpr bool kCellsInScratch = false;
 
   // Small grains: the work per index varies a lot (cells near the box,
   // recovery passes), and the grid-ordered indices keep locality anyway.

@@ -41,9 +41,6 @@ struct CudaExec {
   // Neighbour n of cell t at n * chunk + t: a warp's 32 cells read and write
   // one contiguous line per neighbour instead of 32 scattered ones.
   static constexpr bool kColumnMajorNeighbors = true;
-  // First-tier float cells keep their arrays in shared memory: in local
-  // memory they overflow L1 and the clip kernel waits on L2 (ncu, NOTES.md).
-  static constexpr bool kCellsInScratch = true;
 
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {

@@ -42,27 +42,10 @@ struct ClipFunctor {
   int8_t* status;              // (N,)
   int32_t* num_neighbors;      // (N,)
 
-  static constexpr int kMaxTriangles = 2 * MAX_PLANES;
-  using ScratchArrays = core::StridedCellArrays<T>;
-
-  // The cell's arrays on this thread's stack (CPU) or in local memory (GPU).
   TV_HD void operator()(int64_t t) const {
-    core::ConvexCell<T, MAX_PLANES, kMaxTriangles> cell;
-    compute(t, cell);
-  }
-
-  // The cell's arrays in executor scratch (GPU: interleaved shared memory).
-  static int64_t scratch_bytes() { return ScratchArrays::scratch_bytes(MAX_PLANES, kMaxTriangles); }
-  TV_HD void operator()(int64_t t, core::ScratchArena scratch) const {
-    core::ConvexCell<T, MAX_PLANES, kMaxTriangles, ScratchArrays> cell;
-    cell.store = ScratchArrays::take(scratch, MAX_PLANES, kMaxTriangles);
-    compute(t, cell);
-  }
-
-  template <typename Cell>
-  TV_HD void compute(int64_t t, Cell& cell) const {
     const int32_t cell_id = cells[t];
     const int64_t b = batch ? batch[cell_id] : 0;
+    core::ConvexCell<T, MAX_PLANES, 2 * MAX_PLANES> cell;
     const core::CellIntegrals<T> out = core::compute_cell(
         cell, points, cell_id, neighbors + (neighbors_column_major ? t : t * int64_t(k)),
         neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b, tolerance,
@@ -110,11 +93,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
-  if (Exec::kCellsInScratch && std::is_same<T, float>::value && MAX_PLANES <= 32) {
-    Exec::for_each_with_scratch(cells.size(0), decltype(functor)::scratch_bytes(), functor);
-  } else {
-    Exec::for_each(cells.size(0), functor);
-  }
+  Exec::for_each(cells.size(0), functor);
 }
 
 template <typename Exec, typename io_t, typename T>
