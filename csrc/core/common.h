@@ -19,8 +19,9 @@ struct Vec3 {
   T x, y, z;
 };
 
+// 16-byte aligned: a GPU thread loads a float plane with one vector load.
 template <typename T>
-struct Plane {  // inside iff dot(normal, x) + offset > 0
+struct alignas(16) Plane {  // inside iff dot(normal, x) + offset > 0
   Vec3<T> normal;
   T offset;
 };

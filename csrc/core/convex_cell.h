@@ -23,6 +23,14 @@ template <> struct ClipTolerance<float> { static constexpr float value = 2e-6f; 
 template <> struct ClipTolerance<double> { static constexpr double value = 1e-13; };
 template <> struct ClipTolerance<DoubleDouble> { static constexpr double value = 1e-28; };
 
+// A vertex position and its squared distance to the seed, 16-byte aligned
+// (one vector load on the GPU for float).
+template <typename T>
+struct alignas(16) CachedVertex {
+  Vec3<T> position;
+  T radius2;
+};
+
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
 struct ConvexCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
@@ -30,7 +38,7 @@ struct ConvexCell {
 
   Plane<T> plane[MAX_PLANES];
   uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
-  Vec3<T> vertex[MAX_TRIANGLES];
+  CachedVertex<T> vertex[MAX_TRIANGLES];  // vertex of triangle t
   int32_t num_planes;
   int32_t num_triangles;
   T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
@@ -56,8 +64,7 @@ struct ConvexCell {
     num_triangles = 8;
     radius2_bound = T(0);
     for (int t = 0; t < 8; ++t) {
-      const Vec3<T> v = set_triangle(t, box[t][0], box[t][1], box[t][2]);
-      radius2_bound = max_of(radius2_bound, dot(v, v));
+      radius2_bound = max_of(radius2_bound, set_triangle(t, box[t][0], box[t][1], box[t][2]).radius2);
     }
     radius_stale = false;
     tolerance = relative_tolerance;
@@ -79,9 +86,10 @@ struct ConvexCell {
   }
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
-  TV_HD Vec3<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
+  TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
     triangle[t] = pack(a, b, c);
-    const Vec3<T> v = intersect(a, b, c);
+    const Vec3<T> position = intersect(a, b, c);
+    const CachedVertex<T> v = {position, dot(position, position)};
     vertex[t] = v;
     return v;
   }
@@ -91,8 +99,7 @@ struct ConvexCell {
     if (radius_stale) {
       T r2 = T(0);
       for (int t = 0; t < num_triangles; ++t) {
-        const Vec3<T> v = vertex[t];
-        r2 = max_of(r2, dot(v, v));
+        r2 = max_of(r2, vertex[t].radius2);
       }
       radius2_bound = r2;
       radius_stale = false;
@@ -146,8 +153,7 @@ struct ConvexCell {
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
       const int slot = e < removed ? holes.next() : num_triangles++;
-      const Vec3<T> v = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane));
-      const T v2 = dot(v, v);
+      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane)).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       radius2_bound = max_of(radius2_bound, v2);
       from = to;
@@ -165,13 +171,16 @@ struct ConvexCell {
     Vec3<T> m1 = {T(0), T(0), T(0)};
     T m2 = T(0);
     for (int t = 0; t < num_triangles; ++t) {
-      const Vec3<T> v = vertex[t];
+      const Vec3<T> v = vertex[t].position;
       const uint32_t corners = triangle[t];
+      const Plane<T> planes[3] = {plane[corner(corners, 0)], plane[corner(corners, 1)],
+                                  plane[corner(corners, 2)]};
+      const Vec3<T> feet[3] = {plane_foot(planes[0]), plane_foot(planes[1]), plane_foot(planes[2])};
       for (int e = 0; e < 3; ++e) {
-        const int a = corner(corners, e), b = corner(corners, (e + 1) % 3);
-        const Vec3<T> edge_foot = line_foot(a, b);
-        add_tetrahedron(plane_foot(a), edge_foot, v, T(1), six_volume, m1, m2);
-        add_tetrahedron(plane_foot(b), edge_foot, v, T(-1), six_volume, m1, m2);
+        const int f = (e + 1) % 3;
+        const Vec3<T> edge_foot = line_foot(planes[e], planes[f]);
+        add_tetrahedron(feet[e], edge_foot, v, T(1), six_volume, m1, m2);
+        add_tetrahedron(feet[f], edge_foot, v, T(-1), six_volume, m1, m2);
       }
     }
     volume = six_volume / T(6);
@@ -193,7 +202,7 @@ struct ConvexCell {
     for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
     bool any_clipped = false;
     for (int t = 0; t < num_triangles; ++t) {
-      const bool outside = dot(p.normal, vertex[t]) + p.offset < threshold;
+      const bool outside = dot(p.normal, vertex[t].position) + p.offset < threshold;
       clipped[t >> 5] |= uint32_t(outside) << (t & 31);
       any_clipped |= outside;
     }
@@ -317,15 +326,12 @@ struct ConvexCell {
   }
 
   // Orthogonal projection of the seed (origin) onto plane a.
-  TV_HD Vec3<T> plane_foot(int a) const {
-    const Plane<T> p = plane[a];
+  TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
     return (-p.offset / dot(p.normal, p.normal)) * p.normal;
   }
 
   // Orthogonal projection of the seed onto the line where planes a, b meet.
-  TV_HD Vec3<T> line_foot(int a, int b) const {
-    const Plane<T> pa = plane[a];
-    const Plane<T> pb = plane[b];
+  TV_HD static Vec3<T> line_foot(const Plane<T>& pa, const Plane<T>& pb) {
     const Vec3<T> direction = cross(pa.normal, pb.normal);
     const T scale = T(-1) / dot(direction, direction);
     return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
