@@ -99,6 +99,14 @@ struct ScratchArena {
   }
 };
 
+// Full unrolling of a loop with a compile-time trip count (nvcc; host
+// compilers unroll on their own judgement).
+#if defined(__CUDACC__)
+#define TV_UNROLL _Pragma("unroll")
+#else
+#define TV_UNROLL
+#endif
+
 // Index of the lowest set bit (bits != 0) and number of set bits.
 TV_HD int lowest_bit(uint32_t bits) {
 #if defined(__CUDA_ARCH__)

@@ -31,10 +31,48 @@ struct alignas(16) CachedVertex {
   T radius2;
 };
 
+// One bit per triangle slot. Every word is addressed with a compile-time
+// index (unrolled loops, selects): on the GPU the mask stays in registers,
+// where a dynamically indexed array would go to local memory.
+template <int WORDS>
+struct TriangleMask {
+  uint32_t word[WORDS];
+
+  TV_HD uint32_t get(int w) const {  // word w, w in [0, WORDS)
+    uint32_t value = word[0];
+    TV_UNROLL
+    for (int i = 1; i < WORDS; ++i) value = (w == i) ? word[i] : value;
+    return value;
+  }
+  TV_HD bool test(int t) const { return (get(t >> 5) >> (t & 31)) & 1u; }
+  TV_HD int count() const {
+    int total = 0;
+    TV_UNROLL
+    for (int i = 0; i < WORDS; ++i) total += bit_count(word[i]);
+    return total;
+  }
+
+  // Walks the set bits in increasing order.
+  struct Cursor {
+    TriangleMask mask;  // a copy: no pointer that could pin the mask to memory
+    int w;
+    uint32_t bits;  // bits of word w not visited yet
+    TV_HD int next() {  // requires a set bit left
+      while (bits == 0u) bits = mask.get(++w);
+      const int t = 32 * w + lowest_bit(bits);
+      bits &= bits - 1u;
+      return t;
+    }
+  };
+  TV_HD Cursor cursor() const { return {*this, 0, word[0]}; }
+};
+
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
 struct ConvexCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
+  static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
+  using Mask = TriangleMask<kMaskWords>;
 
   Plane<T> plane[MAX_PLANES];
   uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
@@ -127,8 +165,7 @@ struct ConvexCell {
     // last-resort pass widen the band for this plane only, tenfold at a time:
     // far enough from the plane, every classification agrees with the exact
     // one, and the volume error stays of the order of the band.
-    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
-    uint32_t clipped[kWords];
+    Mask clipped;
     uint8_t next[MAX_PLANES + 1];
     int boundary_length = 0;
     uint8_t start = kNone;
@@ -140,7 +177,7 @@ struct ConvexCell {
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
       if (removed_boundary(clipped, next, boundary_length, start)) break;
     }
-    const int removed = removed_count(clipped);
+    const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int new_plane = num_planes++;
     plane[new_plane] = p;
@@ -148,7 +185,7 @@ struct ConvexCell {
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
     // triangles carries no meaning (the integrals are sums over them).
-    HoleCursor holes{clipped, 0, clipped[0]};
+    typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
@@ -196,48 +233,31 @@ struct ConvexCell {
 
   // Marks the vertices more than `threshold` (< 0) outside plane p; returns
   // whether any is. Independent iterations: several vertex loads in flight
-  // at once (the GPU kernel is bound by local-memory latency).
-  TV_HD bool classify(const Plane<T>& p, T threshold, uint32_t* clipped) const {
-    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
-    for (int w = 0; w < kWords; ++w) clipped[w] = 0u;
-    bool any_clipped = false;
-    for (int t = 0; t < num_triangles; ++t) {
-      const bool outside = dot(p.normal, vertex[t].position) + p.offset < threshold;
-      clipped[t >> 5] |= uint32_t(outside) << (t & 31);
-      any_clipped |= outside;
+  // at once (the GPU kernel is bound by local-memory latency); the mask
+  // words are built in registers.
+  TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped) const {
+    uint32_t any_clipped = 0u;
+    TV_UNROLL
+    for (int w = 0; w < kMaskWords; ++w) {
+      uint32_t bits = 0u;
+      const int end = min_of(num_triangles - 32 * w, 32);
+      for (int i = 0; i < end; ++i) {
+        const bool outside = dot(p.normal, vertex[32 * w + i].position) + p.offset < threshold;
+        bits |= uint32_t(outside) << i;
+      }
+      clipped.word[w] = bits;
+      any_clipped |= bits;
     }
-    return any_clipped;
+    return any_clipped != 0u;
   }
-
-  TV_HD static bool is_set(const uint32_t* bits, int t) { return (bits[t >> 5] >> (t & 31)) & 1u; }
-
-  TV_HD static int removed_count(const uint32_t* clipped) {
-    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
-    int count = 0;
-    for (int w = 0; w < kWords; ++w) count += bit_count(clipped[w]);
-    return count;
-  }
-
-  // Walks the set bits of a triangle mask in increasing order.
-  struct HoleCursor {
-    const uint32_t* mask;
-    int word;
-    uint32_t bits;  // bits of mask[word] not visited yet
-    TV_HD int next() {  // requires a set bit left
-      while (bits == 0u) bits = mask[++word];
-      const int t = 32 * word + lowest_bit(bits);
-      bits &= bits - 1u;
-      return t;
-    }
-  };
 
   // Fewer new triangles than removed ones: move kept triangles from the end
   // into the `count` holes left, lowest hole first, and shorten the list.
-  TV_HD void fill_holes(HoleCursor& holes, int count, const uint32_t* clipped) {
+  TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& clipped) {
     int last = num_triangles - 1;  // the highest slot that may still hold a kept triangle
     for (; count > 0; --count) {
       const int hole = holes.next();
-      while (last > hole && is_set(clipped, last)) --last;  // drop holes at the end
+      while (last > hole && clipped.test(last)) --last;  // drop holes at the end
       if (last <= hole) {  // nothing kept above this hole: the list ends before it
         last = min_of(last, hole - 1);
         break;
@@ -250,11 +270,10 @@ struct ConvexCell {
   }
 
   // Whether a removed triangle has the directed edge from -> to.
-  TV_HD bool removed_edge(const uint32_t* clipped, uint32_t from, uint32_t to) const {
-    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
+  TV_HD bool removed_edge(const Mask& clipped, uint32_t from, uint32_t to) const {
     const uint32_t code = from | to << 8;
-    for (int w = 0; w < kWords; ++w) {
-      for (uint32_t bits = clipped[w]; bits != 0u; bits &= bits - 1u) {
+    for (int w = 0; w < kMaskWords; ++w) {
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u) {
         const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
         // its edges (a, b), (b, c), (c, a) as codes a | b << 8
         if ((corners & 0xffffu) == code || (corners >> 8) == code ||
@@ -268,14 +287,13 @@ struct ConvexCell {
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
   // reverse is not in R, as a successor map over plane ids. False if the
   // boundary is not one simple cycle.
-  TV_HD bool removed_boundary(const uint32_t* clipped, uint8_t* next, int& length,
+  TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, int& length,
                               uint8_t& start) const {
-    constexpr int kWords = (MAX_TRIANGLES + 31) / 32;
     for (int q = 0; q < num_planes; ++q) next[q] = kNone;
     length = 0;
     start = kNone;
-    for (int w = 0; w < kWords; ++w) {
-      for (uint32_t bits = clipped[w]; bits != 0u; bits &= bits - 1u) {
+    for (int w = 0; w < kMaskWords; ++w) {
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u) {
         const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
         for (int e = 0; e < 3; ++e) {
           const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
