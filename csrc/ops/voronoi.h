@@ -208,15 +208,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   const int64_t largest_cloud = batch.has_value()
                                     ? at::bincount(*batch, {}, num_boxes).max().item<int64_t>()
                                     : n;
-  const Grid grid = build_grid(points, batch, num_boxes, points_per_cell_for(k_in.value_or(32)));
+  const Grid sorted = build_grid(points, batch, num_boxes, points_per_cell_for(k_in.value_or(32)));
+  // Work in grid order: cells, neighbours and outputs are numbered by their
+  // position in the grid's sorted order, so that nearby cells (nearby
+  // threads) read nearby neighbour coordinates from cache; the outputs go
+  // back to the caller's order at the end. The sort is stable, so exact
+  // duplicates keep their order and "the lowest index keeps the cell" holds.
+  const at::Tensor permutation = sorted.sorted_index.to(at::kLong);  // position -> caller's index
+  Grid grid = sorted;
+  grid.sorted_index = at::arange(n, sorted.sorted_index.options());
+  const at::Tensor work_points = sorted.sorted_points;
+  const c10::optional<at::Tensor> work_batch =
+      batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, permutation)) : c10::nullopt;
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass) {
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
-      run_pass<Exec, scalar_t>(points, box, batch, grid, cells, pass, memory_budget, out);
+      run_pass<Exec, scalar_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, out);
     });
   };
   const int64_t k = k_in.has_value() ? *k_in : pilot_k<Exec>(grid, largest_cloud, run, out);
   PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
-  at::Tensor pending = grid.sorted_index;  // grid order keeps neighbouring cells together
+  at::Tensor pending = grid.sorted_index;  // every position, in grid order
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
     run(pending, pass);
@@ -239,7 +250,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     if (next == pass) break;  // nothing left to raise
     pass = next;
   }
-  return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
+  const auto to_caller_order = [&](const at::Tensor& by_position) {
+    return at::empty_like(by_position).index_copy_(0, permutation, by_position);
+  };
+  return {to_caller_order(out.volume), to_caller_order(out.centroid),
+          to_caller_order(out.second_moment), to_caller_order(out.status),
+          to_caller_order(out.num_neighbors)};
 }
 
 }  // namespace ops
