@@ -139,12 +139,15 @@ def test_k1_is_nearest(device, dtype, gen):
     assert result.idx.shape == (1000, 1)
 
 
-@pytest.mark.parametrize("k", [16, 17, 32, 33, 64, 65, 128, 129, 256, 257])
-def test_k_around_heap_sizes(device, dtype, gen, k):
-    """k on both sides of every fixed heap size (16 .. 256; beyond: global scratch)."""
-    points = rand(600, gen, dtype, device)
-    knn_and_check(points, k, rand(150, gen, dtype, device, -0.2, 1.2))
-    grid = torch.randint(0, 6, (600, 3), generator=gen).to(dtype).to(device)  # exact ties
+@pytest.mark.parametrize("k", [16, 17, 110, 111, 221, 222, 443, 444, 455, 909, 1100])
+def test_k_across_scratch_layouts(device, dtype, gen, k):
+    """k on both sides of every change of the GPU launch: the heap (8 bytes a slot
+    in float32, 16 in float64) lives in shared memory with 128, 64 or 32 threads a
+    block, and in global memory beyond 227 KB a block (k > 908 in float32, k > 454 in
+    float64). On the CPU these are just more values of k."""
+    points = rand(1200, gen, dtype, device)
+    knn_and_check(points, k, rand(100, gen, dtype, device, -0.2, 1.2))
+    grid = torch.randint(0, 12, (1200, 3), generator=gen).to(dtype).to(device)  # exact ties
     assert_exact(torchvor.knn(grid, k), exact_knn_with_ties(grid, k))
 
 
