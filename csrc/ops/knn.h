@@ -22,12 +22,13 @@ namespace ops {
 template <typename T, typename index_t>
 struct KnnFunctor {
   core::GridView<T> grid;
-  const T* queries;              // (M, 3)
+  const T* queries;              // (M, 3): query order[t] at row order[t], or at row t if queries_in_order
   const int64_t* query_batch;    // (M,) or nullptr
   const int32_t* order;          // processing order: query id of step t
   T* dist2;                      // (rows, k), or nullptr when only indices are wanted
   index_t* index;                // (rows, k): int64 for the public op, int32 inside Voronoi
   int32_t k;
+  bool queries_in_order;         // queries are stored in processing order (sequential reads)
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
   int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
@@ -38,7 +39,7 @@ struct KnnFunctor {
     const int32_t q = order[t];
     const int64_t row = (row_by_query ? q : t) * row_stride;
     const int64_t b = query_batch ? query_batch[q] : 0;
-    const core::Vec3<T> query = core::load_vec3(queries + 3 * int64_t(q));
+    const core::Vec3<T> query = core::load_vec3(queries + 3 * (queries_in_order ? t : int64_t(q)));
     const T inf = T(1) / T(0);
     core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
     core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
@@ -50,15 +51,15 @@ struct KnnFunctor {
 // indices are wanted. Results are (rows, k) row-major, or (k, rows)
 // column-major when `column_major` (coalesced on GPUs).
 template <typename Exec, typename T, typename index_t>
-void run_knn(const core::GridView<T>& grid, const T* queries, const int64_t* query_batch,
-             const int32_t* order, int64_t count, int64_t k, bool exclude_self,
-             bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
+void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_order,
+             const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
+             bool exclude_self, bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
   const int64_t rows = index.numel() / k;
   const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
   KnnFunctor<T, index_t> functor{grid, queries, query_batch, order,
                                  dist2.defined() ? dist2.data_ptr<T>() : nullptr,
                                  index.data_ptr<index_t>(),
-                                 static_cast<int32_t>(k), exclude_self, row_by_query,
+                                 static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
                                  row_stride, column_stride};
   Exec::for_each_with_scratch(count, KnnFunctor<T, index_t>::scratch_bytes(k), functor);
 }
@@ -84,11 +85,16 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   const at::Tensor queries = queries_in.contiguous();
   const Grid grid = build_grid(points, points_batch, num_batches, points_per_cell_for(k));
   // Visit queries in grid order: neighbouring queries read the same cells.
-  const at::Tensor order = exclude_self && !points_batch.has_value()
+  // When the queries are the points, the grid's sorted copy holds them in
+  // that order already (sequential reads).
+  const bool queries_are_points = exclude_self && !points_batch.has_value();
+  const at::Tensor order = queries_are_points
                                ? grid.sorted_index
                                : cell_ids(queries, queries_batch, grid).argsort().to(at::kInt);
+  const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
-    run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), queries.data_ptr<scalar_t>(),
+    run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), ordered_queries.data_ptr<scalar_t>(),
+                            queries_are_points,
                             queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
                             order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
                             /*column_major=*/false, dist2, index);
