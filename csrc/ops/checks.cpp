@@ -1,6 +1,8 @@
 #include "checks.h"
 
 #include <string>
+#include <utility>
+#include <vector>
 
 namespace torchvor {
 namespace ops {
@@ -26,11 +28,29 @@ void check_points(const at::Tensor& points, const char* name) {
                     " has too many points (at most 2^31 - 2)");
 }
 
-void check_finite(const at::Tensor& points, const char* name) {
-  if (points.numel() == 0) return;
-  TORCH_CHECK_VALUE(at::isfinite(points).all().item<bool>(), "torchvor: ", name,
-                    " contains NaN or Inf coordinates");
-}
+// Value checks that need the data: each is a 0-dim bool tensor on the data's
+// device, all read back to the host at once (one device sync, not one each)
+// and reported in the order they were added.
+class ValueChecks {
+ public:
+  void add(at::Tensor holds, std::string message) {
+    conditions_.push_back(std::move(holds));
+    messages_.push_back(std::move(message));
+  }
+  void finite(const at::Tensor& values, const char* name) {
+    add(at::isfinite(values).all(), std::string("torchvor: ") + name + " contains NaN or Inf coordinates");
+  }
+  void run() const {
+    if (conditions_.empty()) return;
+    const at::Tensor holds = at::stack(conditions_).to(at::kCPU);
+    const bool* flag = holds.data_ptr<bool>();
+    for (size_t c = 0; c < messages_.size(); ++c) TORCH_CHECK_VALUE(flag[c], messages_[c]);
+  }
+
+ private:
+  std::vector<at::Tensor> conditions_;
+  std::vector<std::string> messages_;
+};
 
 void check_same_device(const at::Tensor& a, const char* a_name, const at::Tensor& b,
                               const char* b_name) {
@@ -85,8 +105,10 @@ int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, in
   }
   const int64_t points_batches = check_batch(points_batch, n, points, "batch");
   const int64_t query_batches = check_batch(queries_batch, m, points, "query_batch");
-  check_finite(points, "points");
-  check_finite(queries, "queries");
+  ValueChecks values;
+  values.finite(points, "points");
+  values.finite(queries, "queries");
+  values.run();
   return std::max(points_batches, query_batches);
 }
 
@@ -106,18 +128,21 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                     "torchvor: without a batch vector, box must have shape (1, 2, 3)");
   TORCH_CHECK_VALUE(batches <= num_boxes, "torchvor: batch refers to ", batches,
                     " point clouds but box holds ", num_boxes);
-  check_finite(points, "points");
-  check_finite(box, "box");
-  TORCH_CHECK_VALUE((box.select(1, 0) <= box.select(1, 1)).all().item<bool>(),
-                    "torchvor: box must satisfy lo <= hi on every axis");
-  if (n == 0) return;
-  at::Tensor lo = box.select(1, 0), hi = box.select(1, 1);
-  if (batch.has_value()) {
-    lo = lo.index_select(0, *batch);
-    hi = hi.index_select(0, *batch);
+  ValueChecks values;
+  values.finite(points, "points");
+  values.finite(box, "box");
+  values.add((box.select(1, 0) <= box.select(1, 1)).all(),
+             "torchvor: box must satisfy lo <= hi on every axis");
+  if (n > 0) {
+    at::Tensor lo = box.select(1, 0), hi = box.select(1, 1);
+    if (batch.has_value()) {
+      lo = lo.index_select(0, *batch);
+      hi = hi.index_select(0, *batch);
+    }
+    values.add(((points >= lo) & (points <= hi)).all(),
+               "torchvor: points must lie inside box (lo <= p <= hi)");
   }
-  TORCH_CHECK_VALUE(((points >= lo) & (points <= hi)).all().item<bool>(),
-                    "torchvor: points must lie inside box (lo <= p <= hi)");
+  values.run();
 }
 
 }  // namespace ops
