@@ -31,12 +31,23 @@ struct alignas(16) CachedVertex {
   T radius2;
 };
 
-// One bit per triangle slot. Every word is addressed with a compile-time
-// index (unrolled loops, selects): on the GPU the mask stays in registers,
-// where a dynamically indexed array would go to local memory.
+// A small bit set (one bit per triangle slot, or per plane). Every word is
+// addressed with a compile-time index (unrolled loops, selects): on the GPU
+// the set stays in registers, where a dynamically indexed array would go to
+// local memory.
 template <int WORDS>
 struct TriangleMask {
   uint32_t word[WORDS];
+
+  TV_HD void clear() {
+    TV_UNROLL
+    for (int i = 0; i < WORDS; ++i) word[i] = 0u;
+  }
+  TV_HD void set(int t) {
+    const uint32_t bit = 1u << (t & 31);
+    TV_UNROLL
+    for (int i = 0; i < WORDS; ++i) word[i] |= ((t >> 5) == i) ? bit : 0u;
+  }
 
   TV_HD uint32_t get(int w) const {  // word w, w in [0, WORDS)
     uint32_t value = word[0];
@@ -73,6 +84,7 @@ struct ConvexCell {
   static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
   using Mask = TriangleMask<kMaskWords>;
+  using PlaneSet = TriangleMask<(MAX_PLANES + 31) / 32>;
 
   Plane<T> plane[MAX_PLANES];
   uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
@@ -166,7 +178,8 @@ struct ConvexCell {
     // far enough from the plane, every classification agrees with the exact
     // one, and the volume error stays of the order of the band.
     Mask clipped;
-    uint8_t next[MAX_PLANES + 1];
+    uint8_t next[MAX_PLANES];
+    PlaneSet on_boundary;
     int boundary_length = 0;
     uint8_t start = kNone;
     T band = tolerance;
@@ -175,7 +188,7 @@ struct ConvexCell {
       if (!classify(p, -band * r2, clipped)) return true;  // the plane misses the cell
       if (num_planes == MAX_PLANES) compact_planes();
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
-      if (removed_boundary(clipped, next, boundary_length, start)) break;
+      if (removed_boundary(clipped, next, on_boundary, boundary_length, start)) break;
     }
     const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
@@ -269,54 +282,57 @@ struct ConvexCell {
     num_triangles = last + 1;
   }
 
-  // Whether a removed triangle has the directed edge from -> to.
-  TV_HD bool removed_edge(const Mask& clipped, uint32_t from, uint32_t to) const {
-    const uint32_t code = from | to << 8;
-    for (int w = 0; w < kMaskWords; ++w) {
-      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u) {
-        const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
-        // its edges (a, b), (b, c), (c, a) as codes a | b << 8
-        if ((corners & 0xffffu) == code || (corners >> 8) == code ||
-            ((corners >> 16) | (corners & 0xffu) << 8) == code)
-          return true;
-      }
-    }
-    return false;
+  // Whether triangle `corners` (a, b, c) has the directed edge with code
+  // from | to << 8: its edges (a, b), (b, c), (c, a).
+  TV_HD static bool has_edge(uint32_t corners, uint32_t code) {
+    return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
+           (((corners >> 16) | (corners & 0xffu) << 8) == code);
   }
 
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
-  // reverse is not in R, as a successor map over plane ids. False if the
-  // boundary is not one simple cycle.
-  TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, int& length,
-                              uint8_t& start) const {
-    for (int q = 0; q < num_planes; ++q) next[q] = kNone;
+  // reverse is not in R, as a successor map over plane ids (next[x] is valid
+  // where `on_boundary` has x). False if the boundary is not one simple
+  // cycle. The removed triangles are gathered first, so that the search for
+  // reverse edges is a short branch-free loop of the same length in every
+  // lane.
+  TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
+                              int& length, uint8_t& start) const {
+    uint32_t removed[MAX_TRIANGLES];
+    int count = 0;
+    for (int w = 0; w < kMaskWords; ++w) {
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
+        removed[count++] = triangle[32 * w + lowest_bit(bits)];
+    }
+    on_boundary.clear();
     length = 0;
     start = kNone;
-    for (int w = 0; w < kMaskWords; ++w) {
-      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u) {
-        const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
-        for (int e = 0; e < 3; ++e) {
-          const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
-          if (removed_edge(clipped, to, from)) continue;  // interior edge
-          if (next[from] != kNone) return false;  // a vertex twice on the boundary
-          next[from] = to;
-          start = from;
-          ++length;
-        }
+    for (int i = 0; i < count; ++i) {
+      const uint32_t corners = removed[i];
+      for (int e = 0; e < 3; ++e) {
+        const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+        const uint32_t reverse = uint32_t(to) | uint32_t(from) << 8;
+        bool interior = false;
+        for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
+        if (interior) continue;
+        if (on_boundary.test(from)) return false;  // a vertex twice on the boundary
+        on_boundary.set(from);
+        next[from] = to;
+        start = from;
+        ++length;
       }
     }
     // One simple cycle through every boundary edge (not several, not broken).
-    return length >= 3 && cycle_length(next, start) == length;
+    return length >= 3 && cycle_length(next, on_boundary, start) == length;
   }
 
   // Edges on the way from `start` back to itself; stops early at a dead end.
-  TV_HD static int cycle_length(const uint8_t* next, uint8_t start) {
+  TV_HD static int cycle_length(const uint8_t* next, const PlaneSet& on_boundary, uint8_t start) {
     int length = 0;
     uint8_t from = start;
     do {
       from = next[from];
       ++length;
-    } while (from != start && from != kNone && length <= MAX_PLANES);
+    } while (from != start && on_boundary.test(from) && length <= MAX_PLANES);
     return from == start ? length : -1;
   }
 

@@ -47,12 +47,9 @@ TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& ce
     if (r2 == T(0)) {
       // Exact duplicate: the lowest index keeps the cell, the others are empty.
       if (j < seed_index) {
-        out.volume = T(0);
-        out.centroid = seed;
-        out.second_moment = T(0);
         out.status = kDuplicate;
         out.neighbors = n + 1;
-        return out;
+        break;
       }
       continue;
     }
@@ -70,6 +67,15 @@ TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& ce
       out.neighbors = n + 1;
       break;
     }
+  }
+  // One exit from the loop above (no early return inside it): on the GPU the
+  // lanes of a warp meet again here and integrate together, instead of each
+  // lane integrating as soon as its own loop ends while the others clip.
+  if (out.status == kDuplicate) {
+    out.volume = T(0);
+    out.centroid = seed;
+    out.second_moment = T(0);
+    return out;
   }
   if (out.status != kSuccess) {
     const T nan = T(0) / T(0);
