@@ -163,10 +163,13 @@ def as_box(points: torch.Tensor, box: Optional[BoxLike], batch: Optional[torch.T
         hi[empty] = 0
         return torch.stack([lo, hi], 1)
     if isinstance(box, (tuple, list)) and len(box) == 2:
-        lo, hi = (torch.as_tensor(b, dtype=points.dtype, device=points.device) for b in box)
+        if not any(isinstance(b, torch.Tensor) for b in box):  # plain numbers: one copy to the device
+            lo, hi = (torch.as_tensor(b, dtype=points.dtype) for b in box)
+        else:
+            lo, hi = (torch.as_tensor(b, dtype=points.dtype, device=points.device) for b in box)
         if lo.shape != (3,) or hi.shape != (3,):
             raise ValueError(f"torchvor: box=(lo, hi) needs lo and hi of shape (3,), got {tuple(lo.shape)}, {tuple(hi.shape)}")
-        return torch.stack([lo, hi]).unsqueeze(0)
+        return torch.stack([lo, hi]).unsqueeze(0).to(points.device)
     box = torch.as_tensor(box, dtype=points.dtype, device=points.device)
     if box.shape == (2, 3):
         box = box.unsqueeze(0)

@@ -93,55 +93,60 @@ inline Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>
                        int64_t num_batches, double points_per_cell) {
   const int64_t n = points.size(0);
   const auto options = points.options();
-  // Per-batch bounding boxes and counts, on the points' device, then to host.
-  at::Tensor lo, hi, counts;
+  // Per-batch bounding boxes and counts, on the points' device, then to the
+  // host in one copy (every device-to-host copy waits for the device).
+  // Rows of `summary`: lo (3), hi (3), count (1), in double (exact for
+  // counts below 2^53).
+  at::Tensor summary;
+  const auto as_double = [](const at::Tensor& t) { return t.to(at::kDouble); };
   if (batch.has_value()) {
     at::Tensor index = batch->unsqueeze(1).expand({n, 3});
-    lo = at::full({num_batches, 3}, INFINITY, options).scatter_reduce(0, index, points, "amin");
-    hi = at::full({num_batches, 3}, -INFINITY, options).scatter_reduce(0, index, points, "amax");
-    counts = at::bincount(*batch, {}, num_batches);
+    at::Tensor lo = at::full({num_batches, 3}, INFINITY, options).scatter_reduce(0, index, points, "amin");
+    at::Tensor hi = at::full({num_batches, 3}, -INFINITY, options).scatter_reduce(0, index, points, "amax");
+    at::Tensor counts = at::bincount(*batch, {}, num_batches).unsqueeze(1);
+    summary = at::cat({as_double(lo), as_double(hi), as_double(counts)}, 1).to(at::kCPU);
   } else if (n > 0) {
-    lo = std::get<0>(points.min(0)).unsqueeze(0);
-    hi = std::get<0>(points.max(0)).unsqueeze(0);
-    counts = at::full({1}, n, options.dtype(at::kLong));
+    at::Tensor lo = std::get<0>(points.min(0));
+    at::Tensor hi = std::get<0>(points.max(0));
+    summary = at::cat({as_double(at::stack({lo, hi})).flatten(), at::full({1}, double(n), lo.options().dtype(at::kDouble))})
+                  .unsqueeze(0)
+                  .to(at::kCPU);
   } else {
-    lo = at::zeros({1, 3}, options);
-    hi = at::zeros({1, 3}, options);
-    counts = at::zeros({1}, options.dtype(at::kLong));
+    summary = at::zeros({1, 7}, at::kDouble);
   }
-  at::Tensor lo_host = lo.to(at::kCPU, at::kDouble).contiguous();
-  at::Tensor hi_host = hi.to(at::kCPU, at::kDouble).contiguous();
-  at::Tensor counts_host = counts.to(at::kCPU).contiguous();
-  const double* lo_ptr = lo_host.data_ptr<double>();
-  const double* hi_ptr = hi_host.data_ptr<double>();
-  const int64_t* count_ptr = counts_host.data_ptr<int64_t>();
+  summary = summary.contiguous();
+  const double* summary_ptr = summary.data_ptr<double>();
 
-  at::Tensor origin_host = at::empty({num_batches, 3}, at::kDouble);
-  at::Tensor cell_size_host = at::empty({num_batches}, at::kDouble);
-  at::Tensor dims_host = at::empty({num_batches, 3}, at::kInt);
-  at::Tensor offset_host = at::empty({num_batches}, at::kInt);
+  // Grid parameters per batch element, built on the host and copied to the
+  // device in one go: origin (3), cell size (1), dims (3), first cell (1),
+  // all exact in double.
+  at::Tensor params_host = at::empty({num_batches, 8}, at::kDouble);
+  double* params = params_host.data_ptr<double>();
   int64_t total_cells = 0;
   for (int64_t b = 0; b < num_batches; ++b) {
+    const double* row = summary_ptr + 7 * b;  // lo, hi, count
+    double* out = params + 8 * b;
     double extent[3], cell_size;
     int32_t dims[3];
-    const bool empty = count_ptr[b] == 0;
+    const int64_t count = static_cast<int64_t>(row[6]);
     for (int a = 0; a < 3; ++a) {
-      extent[a] = empty ? 0.0 : hi_ptr[3 * b + a] - lo_ptr[3 * b + a];
-      origin_host[b][a] = empty ? 0.0 : lo_ptr[3 * b + a];
+      extent[a] = count == 0 ? 0.0 : row[3 + a] - row[a];
+      out[a] = count == 0 ? 0.0 : row[a];
     }
-    grid_shape(extent, count_ptr[b], points_per_cell, cell_size, dims);
-    cell_size_host[b] = cell_size;
-    for (int a = 0; a < 3; ++a) dims_host[b][a] = dims[a];
-    offset_host[b] = static_cast<int32_t>(total_cells);
+    grid_shape(extent, count, points_per_cell, cell_size, dims);
+    out[3] = cell_size;
+    for (int a = 0; a < 3; ++a) out[4 + a] = dims[a];
+    out[7] = static_cast<double>(total_cells);
     total_cells += int64_t(dims[0]) * dims[1] * dims[2];
     TORCH_CHECK(total_cells < (int64_t(1) << 31), "torchvor: grid too large");
   }
 
   Grid grid;
-  grid.origin = origin_host.to(options);
-  grid.cell_size = cell_size_host.to(options);
-  grid.dims = dims_host.to(points.device());
-  grid.cell_offset = offset_host.to(points.device());
+  const at::Tensor params_device = params_host.to(points.device());
+  grid.origin = params_device.slice(1, 0, 3).to(points.scalar_type()).contiguous();
+  grid.cell_size = params_device.select(1, 3).to(points.scalar_type()).contiguous();
+  grid.dims = params_device.slice(1, 4, 7).to(at::kInt).contiguous();
+  grid.cell_offset = params_device.select(1, 7).to(at::kInt).contiguous();
   at::Tensor ids = cell_ids(points, batch, grid);
   auto sorted = at::sort(ids, /*stable=*/true, /*dim=*/0, /*descending=*/false);
   at::Tensor sorted_ids = std::get<0>(sorted);

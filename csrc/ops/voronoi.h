@@ -11,6 +11,7 @@
 #include <ATen/ATen.h>
 
 #include <algorithm>
+#include <initializer_list>
 #include <tuple>
 
 #include "../core/voronoi_cell.h"
@@ -236,14 +237,22 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     pending = pending.masked_select(failed);
     if (pending.size(0) == 0) break;
     // Escalate what the failures ask for; stop when nothing is left to raise.
+    // The three questions travel to the host in one read (one device sync).
     const at::Tensor failed_status = status.masked_select(failed);
-    const auto any = [&](core::CellStatus code) {
-      return (failed_status == int64_t(code)).any().item<bool>();
+    const auto any = [&](std::initializer_list<core::CellStatus> codes) {
+      at::Tensor hit = at::zeros_like(failed_status, at::kBool);
+      for (const core::CellStatus code : codes) hit |= failed_status == int64_t(code);
+      return hit.any();
     };
+    const at::Tensor asks =
+        at::stack({any({core::kSecurityRadiusNotReached}),
+                   any({core::kTooManyPlanes, core::kTooManyVertices}), any({core::kBoundaryError})})
+            .to(at::kCPU);
+    const bool* ask = asks.data_ptr<bool>();
     PassSettings next = pass;
-    if (any(core::kSecurityRadiusNotReached)) next.k = std::min(2 * pass.k, largest_cloud);
-    if (any(core::kTooManyPlanes) || any(core::kTooManyVertices)) next.tier = std::min(pass.tier + 1, 2);
-    if (any(core::kBoundaryError)) {
+    if (ask[0]) next.k = std::min(2 * pass.k, largest_cloud);
+    if (ask[1]) next.tier = std::min(pass.tier + 1, 2);
+    if (ask[2]) {
       next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
                                                                            : Precision::kDoubleDouble;
     }
