@@ -45,12 +45,6 @@ struct CudaExec {
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {
     if (n == 0) return;
-    // No shared memory here: ask for all of the SM's L1 for local memory.
-    // Without the hint the driver may keep the split of the previous kernel
-    // (the kNN, with its heaps in shared memory).
-    C10_CUDA_CHECK(cudaFuncSetAttribute(for_each_kernel<Functor>,
-                                        cudaFuncAttributePreferredSharedMemoryCarveout,
-                                        cudaSharedmemCarveoutMaxL1));
     const int64_t blocks = (n + kThreads - 1) / kThreads;
     for_each_kernel<<<blocks, kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(n, functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
