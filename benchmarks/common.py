@@ -79,8 +79,12 @@ def setup(args) -> tuple[torch.device, torch.dtype]:
 
 
 def git_commit() -> str:
-    """Short commit of the checkout, '+dirty' when tracked files differ; without git
-    (a copied tree) the COMMIT environment variable, else 'unknown'."""
+    """The COMMIT environment variable when set (a copied tree, e.g. on the GPU machine,
+    may carry a stale .git); else the checkout's short commit, '+dirty' when tracked
+    files differ; else 'unknown'."""
+    if os.environ.get("COMMIT"):
+        return os.environ["COMMIT"]
+
     def git(*argv):
         return subprocess.run(["git", "--no-optional-locks", *argv], cwd=HERE, capture_output=True,
                               text=True, timeout=10)
@@ -91,7 +95,7 @@ def git_commit() -> str:
             return head.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         pass
-    return os.environ.get("COMMIT", "unknown")
+    return "unknown"
 
 
 def cpu_model() -> str:
