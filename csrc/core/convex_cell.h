@@ -36,7 +36,7 @@ struct alignas(16) CachedVertex {
 // the set stays in registers, where a dynamically indexed array would go to
 // local memory.
 template <int WORDS>
-struct TriangleMask {
+struct BitSet {
   uint32_t word[WORDS];
 
   TV_HD void clear() {
@@ -65,7 +65,7 @@ struct TriangleMask {
 
   // Walks the set bits in increasing order.
   struct Cursor {
-    TriangleMask mask;  // a copy: no pointer that could pin the mask to memory
+    BitSet mask;  // a copy: no pointer that could pin the mask to memory
     int w;
     uint32_t bits;  // bits of word w not visited yet
     TV_HD int next() {  // requires a set bit left
@@ -83,8 +83,8 @@ struct ConvexCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
-  using Mask = TriangleMask<kMaskWords>;
-  using PlaneSet = TriangleMask<(MAX_PLANES + 31) / 32>;
+  using Mask = BitSet<kMaskWords>;
+  using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
 
   Plane<T> plane[MAX_PLANES];
   uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16

@@ -101,16 +101,17 @@ inline Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>
   const auto as_double = [](const at::Tensor& t) { return t.to(at::kDouble); };
   if (batch.has_value()) {
     at::Tensor index = batch->unsqueeze(1).expand({n, 3});
-    at::Tensor lo = at::full({num_batches, 3}, INFINITY, options).scatter_reduce(0, index, points, "amin");
-    at::Tensor hi = at::full({num_batches, 3}, -INFINITY, options).scatter_reduce(0, index, points, "amax");
+    at::Tensor lo = at::full({num_batches, 3}, INFINITY, options)
+                        .scatter_reduce(0, index, points, "amin");
+    at::Tensor hi = at::full({num_batches, 3}, -INFINITY, options)
+                        .scatter_reduce(0, index, points, "amax");
     at::Tensor counts = at::bincount(*batch, {}, num_batches).unsqueeze(1);
     summary = at::cat({as_double(lo), as_double(hi), as_double(counts)}, 1).to(at::kCPU);
   } else if (n > 0) {
     at::Tensor lo = std::get<0>(points.min(0));
     at::Tensor hi = std::get<0>(points.max(0));
-    summary = at::cat({as_double(at::stack({lo, hi})).flatten(), at::full({1}, double(n), lo.options().dtype(at::kDouble))})
-                  .unsqueeze(0)
-                  .to(at::kCPU);
+    const at::Tensor count = at::full({1}, double(n), lo.options().dtype(at::kDouble));
+    summary = at::cat({as_double(at::stack({lo, hi})).flatten(), count}).unsqueeze(0).to(at::kCPU);
   } else {
     summary = at::zeros({1, 7}, at::kDouble);
   }
