@@ -1,12 +1,14 @@
 // Runs a functor over [0, n) on all CPU threads (ATen's OpenMP pool).
 #pragma once
 
+#include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
 #include <cstddef>
 #include <vector>
 
 #include "../core/common.h"
+#include "large_buffers.h"
 
 namespace torchvor {
 namespace cpu {
@@ -18,6 +20,11 @@ struct CpuExec {
   // Small grains: the work per index varies a lot (cells near the box,
   // recovery passes), and the grid-ordered indices keep locality anyway.
   static constexpr int64_t kGrain = 64;
+
+  // Output tensors: large ones on huge pages (see large_buffers.h).
+  static at::Tensor empty(at::IntArrayRef sizes, const at::TensorOptions& options) {
+    return empty_large(sizes, options);
+  }
 
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {

@@ -35,6 +35,11 @@ __global__ void for_each_global_scratch_kernel(int64_t n, unsigned char* scratch
 }
 
 struct CudaExec {
+  // Output tensors: the caching allocator.
+  static at::Tensor empty(at::IntArrayRef sizes, const at::TensorOptions& options) {
+    return at::empty(sizes, options);
+  }
+
   // 128 threads per block: a sweep of 32-256 threads and of residency caps
   // changed nothing or made it slower (benchmarks/NOTES.md).
   static constexpr int kThreads = 128;

@@ -78,8 +78,8 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   const int64_t num_batches =
       check_knn_inputs(points_in, queries_in, k, points_batch, queries_batch, exclude_self);
   const int64_t m = queries_in.size(0);
-  at::Tensor dist2 = at::empty({m, k}, queries_in.options());
-  at::Tensor index = at::empty({m, k}, queries_in.options().dtype(at::kLong));
+  at::Tensor dist2 = Exec::empty({m, k}, queries_in.options());
+  at::Tensor index = Exec::empty({m, k}, queries_in.options().dtype(at::kLong));
   if (m == 0) return {dist2, index};
   const at::Tensor points = points_in.contiguous();
   const at::Tensor queries = queries_in.contiguous();
