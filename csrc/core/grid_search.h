@@ -75,6 +75,12 @@ template <> struct HeapKey<float> {
   }
   TV_HD int32_t index() const { return int32_t(uint32_t(bits)); }
   TV_HD bool operator<(const HeapKey& other) const { return bits < other.bits; }
+  // `when ? a : b` as bit operations: host compilers turn the ternary into an
+  // unpredictable branch here.
+  TV_HD static HeapKey select(bool when, HeapKey a, HeapKey b) {
+    const uint64_t mask = uint64_t(0) - uint64_t(when);
+    return {(a.bits & mask) | (b.bits & ~mask)};
+  }
 };
 
 template <> struct HeapKey<double> {
@@ -86,6 +92,7 @@ template <> struct HeapKey<double> {
   TV_HD bool operator<(const HeapKey& other) const {
     return d < other.d || (d == other.d && i < other.i);
   }
+  TV_HD static HeapKey select(bool when, HeapKey a, HeapKey b) { return when ? a : b; }
 };
 
 // Max-heap of candidate keys: the root is the worst of the k best so far.
@@ -130,8 +137,8 @@ struct NeighborHeap {
         if (c < n) {
           const HeapKey<T> other = key[c];
           const bool bigger = larger < other;
-          larger = bigger ? other : larger;
-          child = bigger ? c : child;
+          larger = HeapKey<T>::select(bigger, other, larger);
+          child += (c - child) & -int32_t(bigger);
         }
       }
       if (!(item < larger)) break;
