@@ -216,9 +216,6 @@ struct ConvexCell {
   // Volume, first moment and second moment (integral of |x|^2) of the cell,
   // all relative to the seed, from six signed tetrahedra per vertex (§3.5):
   // seed, foot of the seed on a plane, foot on an edge line, the vertex.
-  // A tetrahedron (0, p1, p2, p3) contributes 6 vol = det(p1, p2, p3),
-  // 24 x first moment = 6 vol (p1 + p2 + p3) and 120 x second moment =
-  // 6 vol (|p1|^2 + |p2|^2 + |p3|^2 + |p1 + p2 + p3|^2).
   TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment) const {
     T six_volume = T(0);
     Vec3<T> m1 = {T(0), T(0), T(0)};
@@ -228,34 +225,12 @@ struct ConvexCell {
       const uint32_t corners = triangle[t];
       const Plane<T> planes[3] = {plane[corner(corners, 0)], plane[corner(corners, 1)],
                                   plane[corner(corners, 2)]};
-      // Edge e joins faces e and e + 1; face i meets edge i (tetrahedron
-      // counted +) and edge i - 1 (counted -) at this vertex. Each face's two
-      // tetrahedra share the seed, the face's foot and v: one cross product
-      // gives both volumes (det(f, e, v) = e . (v x f)), and the squared
-      // norms are computed once.
-      Vec3<T> edge_feet[3];
-      T edge_norm2[3];
-      TV_UNROLL
+      const Vec3<T> feet[3] = {plane_foot(planes[0]), plane_foot(planes[1]), plane_foot(planes[2])};
       for (int e = 0; e < 3; ++e) {
-        edge_feet[e] = line_foot(planes[e], planes[(e + 1) % 3]);
-        edge_norm2[e] = dot(edge_feet[e], edge_feet[e]);
-      }
-      const T vertex_norm2 = dot(v, v);
-      TV_UNROLL
-      for (int face = 0; face < 3; ++face) {
-        const Vec3<T> foot = plane_foot(planes[face]);
-        const Vec3<T> normal_of_volumes = cross(v, foot);
-        const int ahead = face, behind = (face + 2) % 3;
-        const T plus = dot(edge_feet[ahead], normal_of_volumes);    // 6 x signed volume
-        const T minus = dot(edge_feet[behind], normal_of_volumes);
-        const Vec3<T> foot_and_vertex = foot + v;
-        const Vec3<T> sum_plus = foot_and_vertex + edge_feet[ahead];
-        const Vec3<T> sum_minus = foot_and_vertex + edge_feet[behind];
-        const T shared_norm2 = dot(foot, foot) + vertex_norm2;
-        six_volume += plus - minus;
-        m1 = m1 + (plus * sum_plus - minus * sum_minus);
-        m2 += plus * (shared_norm2 + edge_norm2[ahead] + dot(sum_plus, sum_plus)) -
-              minus * (shared_norm2 + edge_norm2[behind] + dot(sum_minus, sum_minus));
+        const int f = (e + 1) % 3;
+        const Vec3<T> edge_foot = line_foot(planes[e], planes[f]);
+        add_tetrahedron(feet[e], edge_foot, v, T(1), six_volume, m1, m2);
+        add_tetrahedron(feet[f], edge_foot, v, T(-1), six_volume, m1, m2);
       }
     }
     volume = six_volume / T(6);
@@ -394,6 +369,18 @@ struct ConvexCell {
     const Vec3<T> direction = cross(pa.normal, pb.normal);
     const T scale = T(-1) / dot(direction, direction);
     return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
+  }
+
+  // Signed tetrahedron (seed, f, e, v): accumulate 6 * volume, 24 * first
+  // moment and 120 * second moment (integral of |x|^2 over a tetrahedron with
+  // a vertex at the origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2)).
+  TV_HD static void add_tetrahedron(Vec3<T> f, Vec3<T> e, Vec3<T> v, T sign, T& six_volume,
+                                    Vec3<T>& m1, T& m2) {
+    const T six_vol = sign * det3(f, e, v);
+    const Vec3<T> sum = f + e + v;
+    six_volume += six_vol;
+    m1 = m1 + six_vol * sum;
+    m2 += six_vol * (dot(f, f) + dot(e, e) + dot(v, v) + dot(sum, sum));
   }
 };
 
