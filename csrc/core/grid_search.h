@@ -148,43 +148,46 @@ struct NeighborHeap {
     key[e] = item;
   }
 
-  // Heap sort into increasing order, then write (dist2, index) padded with
-  // (inf, -1), element e at e * stride; `dist2_out` may be null.
+  // Write the keys in increasing order as (dist2, index), padded with
+  // (inf, -1), element e at e * stride; `dist2_out` may be null. The heap is
+  // consumed. Host: an AVX2 rank count for float keys (key_ranks.h), else
+  // std::sort; device: heap sort in place (no extra memory).
   template <typename index_t>
   TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
+    const auto write = [&](int32_t e, const HeapKey<T>& item) {
+      index_out[e * stride] = item.index();
+      if (dist2_out) dist2_out[e * stride] = item.dist2();
+    };
+    bool ranked = false;
 #if defined(TORCHVOR_HAS_KEY_RANKS) && !defined(__CUDA_ARCH__)
-    if (std::is_same<T, float>::value && key.stride == 1 && size <= kMaxRankedKeys &&
-        cpu_has_avx2()) {
-      // float keys are one uint64 with a clear top bit: distinct and signed-comparable
-      int32_t rank[kMaxRankedKeys];
-      key_ranks(reinterpret_cast<const int64_t*>(key.data), size, rank);
-      for (int32_t i = 0; i < size; ++i) {
-        index_out[rank[i] * stride] = key.data[i].index();
-        if (dist2_out) dist2_out[rank[i] * stride] = key.data[i].dist2();
+    if constexpr (std::is_same<T, float>::value) {
+      if (key.stride == 1 && size <= kMaxRankedKeys && cpu_has_avx2()) {
+        // float keys are one uint64 with a clear top bit: distinct and signed-comparable
+        int32_t rank[kMaxRankedKeys];
+        key_ranks(reinterpret_cast<const int64_t*>(key.data), size, rank);
+        for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
+        ranked = true;
       }
-      for (int32_t e = size; e < capacity; ++e) {
-        index_out[e * stride] = -1;
-        if (dist2_out) dist2_out[e * stride] = infinity;
-      }
-      return;
     }
 #endif
+    if (!ranked) {
 #if !defined(__CUDA_ARCH__)
-    if (key.stride == 1) {
-      std::sort(key.data, key.data + size);  // the host's introsort; same order, fewer branches
-    } else
+      if (key.stride == 1) {
+        std::sort(key.data, key.data + size);
+      } else
 #endif
-    {
-      for (int32_t n = size - 1; n > 0; --n) {  // heap sort: no extra memory
-        const HeapKey<T> top = key[0];
-        sift_down(0, n, key[n]);
-        key[n] = top;
+      {
+        for (int32_t n = size - 1; n > 0; --n) {
+          const HeapKey<T> top = key[0];
+          sift_down(0, n, key[n]);
+          key[n] = top;
+        }
       }
+      for (int32_t e = 0; e < size; ++e) write(e, key[e]);
     }
-    for (int32_t e = 0; e < capacity; ++e) {
-      const bool real = e < size;
-      index_out[e * stride] = real ? key[e].index() : -1;
-      if (dist2_out) dist2_out[e * stride] = real ? key[e].dist2() : infinity;
+    for (int32_t e = size; e < capacity; ++e) {
+      index_out[e * stride] = -1;
+      if (dist2_out) dist2_out[e * stride] = infinity;
     }
   }
 };

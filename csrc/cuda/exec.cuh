@@ -5,8 +5,6 @@
 #include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDAException.h>
 
-#include <algorithm>
-
 #include "../core/common.h"
 
 namespace torchvor {

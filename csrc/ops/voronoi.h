@@ -217,7 +217,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   Grid grid;
   at::Tensor permutation, work_points;  // position -> caller's index; points by position
   c10::optional<at::Tensor> work_batch;
-  double grid_points_per_cell = 0.0;
   const auto sort_into_grid = [&](double points_per_cell) {
     const Grid sorted = build_grid(points, batch, num_boxes, points_per_cell);
     permutation = sorted.sorted_index.to(at::kLong);
@@ -226,7 +225,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     work_points = sorted.sorted_points;
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, permutation))
                                    : c10::nullopt;
-    grid_points_per_cell = points_per_cell;
   };
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass) {
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
@@ -239,11 +237,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   // cell; on 2 CPU cores 100K white 511 -> 484 ms). The main pass recomputes
   // every cell, so the pilot's outputs, numbered in the old order, are
   // overwritten.
-  sort_into_grid(points_per_cell_for(k_in.value_or(32)));
+  const double first_points_per_cell = points_per_cell_for(k_in.value_or(32));
+  sort_into_grid(first_points_per_cell);
   int64_t k = k_in.value_or(0);
   if (!k_in.has_value()) {
     k = pilot_k<Exec>(grid, largest_cloud, run, out);
-    if (points_per_cell_for(k) >= 1.5 * grid_points_per_cell) sort_into_grid(points_per_cell_for(k));
+    if (points_per_cell_for(k) >= 1.5 * first_points_per_cell) sort_into_grid(points_per_cell_for(k));
   }
   PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
   at::Tensor pending = grid.sorted_index;  // every position, in grid order
