@@ -212,15 +212,15 @@ def check_knn_result(dist2, idx, points, k: int, queries=None, *, batch=None, qu
 # ------------------------------------------------------------------------- Voronoi
 
 
-def tetrahedron_integrals(p0, p1, p2, p3):
+def tetrahedron_integrals(p0, p1, p2, p3, dtype=np.float64):
     """Exact integrals over the tetrahedra (p0, p1, p2, p3), coordinates relative
-    to the reference point x_i (arrays of shape (T, 3)).
+    to the reference point x_i (arrays of shape (T, 3)), computed in `dtype`.
 
     Returns (volume (T,), first moment (T, 3), second moment (T,)): the second
     moment is the integral of |x|^2, = vol / 20 * (sum_j |p_j|^2 + |sum_j p_j|^2).
     Volumes are unsigned.
     """
-    p0, p1, p2, p3 = (np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in (p0, p1, p2, p3))
+    p0, p1, p2, p3 = (np.asarray(p, dtype=dtype).reshape(-1, 3) for p in (p0, p1, p2, p3))
     vol = np.abs(np.einsum("ij,ij->i", p1 - p0, np.cross(p2 - p0, p3 - p0))) / 6.0
     total = p0 + p1 + p2 + p3
     first = vol[:, None] * total / 4.0
@@ -238,6 +238,7 @@ class CellOracle:
     facet_neighbors: np.ndarray  # indices of the points whose bisector bounds a facet
     seed: np.ndarray  # (3,) the point itself
     duplicate: bool = False
+    area: float = 0.0  # surface area of the cell
 
     @property
     def radius(self) -> float:
@@ -261,6 +262,32 @@ def _interior_point(halfspaces: np.ndarray) -> np.ndarray:
     return res.x[:3]
 
 
+def _face_fans(verts: np.ndarray, planes_of_vertex, normals: np.ndarray) -> np.ndarray:
+    """Triangles (F, 3, 3) covering the cell's boundary: each face's vertices
+    (those on its plane) in angular order around the face's mean, fanned.
+    Built from the plane incidences rather than a convex hull of the vertices:
+    Qhull's hull of a needle cell's vertices can stop with a precision error."""
+    on_plane = {}
+    for v, planes in enumerate(planes_of_vertex):
+        for h in planes:
+            on_plane.setdefault(h, []).append(v)
+    triangles = []
+    for h, ids in on_plane.items():
+        if len(ids) < 3:
+            continue
+        ids = np.asarray(ids)
+        normal = normals[h] / np.linalg.norm(normals[h])
+        axis = np.eye(3)[np.argmin(np.abs(normal))]  # the axis least aligned with the normal
+        u = np.cross(normal, axis)
+        u /= np.linalg.norm(u)
+        w = np.cross(normal, u)
+        offsets = verts[ids] - verts[ids].mean(0)
+        ring = ids[np.argsort(np.arctan2(offsets @ w, offsets @ u))]
+        for t in range(1, len(ring) - 1):
+            triangles.append(verts[[ring[0], ring[t], ring[t + 1]]])
+    return np.asarray(triangles)
+
+
 def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     """Voronoi cell of points[i] clipped to box = (lo, hi), by Qhull half-space
     intersection in coordinates relative to the seed (so large offsets lose no
@@ -272,7 +299,8 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     relative to the seed. Exact duplicates: the lowest index owns the cell,
     higher copies get an empty cell (volume 0, centroid = the seed).
     """
-    from scipy.spatial import ConvexHull, HalfspaceIntersection
+    from scipy.spatial import HalfspaceIntersection
+    from scipy.spatial import QhullError
 
     pts = _np64(points)
     lo, hi = (_np64(b).reshape(3) for b in box)
@@ -299,7 +327,13 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     interior = np.zeros(3)
     if (-hs[:, 3]).min() <= 1e-6 * scale:
         interior = _interior_point(hs)
-    hsi = HalfspaceIntersection(hs, interior)
+    try:
+        hsi = HalfspaceIntersection(hs, interior)
+    except QhullError:
+        # Bisectors of a tight cluster meet at angles near 1e-6; Qhull can
+        # then flag a wide facet in post-processing. Allow it: the vertices
+        # are refined on their planes below anyway.
+        hsi = HalfspaceIntersection(hs, interior, qhull_options="Q12 Pp")
     # refine every vertex by least squares on the planes Qhull says meet there
     verts, planes_of = [], []
     for point, facet in zip(hsi.intersections, hsi.dual_facets):
@@ -316,21 +350,24 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     for g, planes in zip(group, planes_of):
         merged[g] |= planes
     verts = verts[first]
-    hull = ConvexHull(verts)
+    tri = _face_fans(verts, merged, hs[:, :3])  # (F, 3, 3)
     centre = verts.mean(0)
-    tri = verts[hull.simplices]  # (F, 3, 3)
     c = np.broadcast_to(centre, tri[:, 0].shape)
-    vol, first_moment, second = tetrahedron_integrals(c, tri[:, 0], tri[:, 1], tri[:, 2])
+    # Extended precision (x87 long double on x86): a needle cell (1e-5 wide,
+    # 0.1 long) fans into slivers whose determinants cancel; in float64 its
+    # second moment came out 1.2e-10 off the exact rational value.
+    vol, first_moment, second = tetrahedron_integrals(c, tri[:, 0], tri[:, 1], tri[:, 2], np.longdouble)
     volume = float(vol.sum())
-    centroid = first_moment.sum(0) / volume
+    centroid = (first_moment.sum(0) / vol.sum()).astype(np.float64)
     # a plane bounds a facet when at least 3 distinct vertices lie on it
     count = {}
     for planes in merged:
         for h in planes:
             count[h] = count.get(h, 0) + 1
     facets = sorted(int(owner[h]) for h, cnt in count.items() if cnt >= 3 and owner[h] >= 0)
+    area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
     return CellOracle(volume, centroid + seed, float(second.sum()), verts + seed,
-                      np.array(facets, dtype=np.int64), seed)
+                      np.array(facets, dtype=np.int64), seed, area=area)
 
 
 def voronoi_oracle(points, box, cells: Optional[Sequence[int]] = None):

@@ -15,6 +15,7 @@ enum CellStatus : int8_t {
   kTooManyVertices = 3,            // the triangle (vertex) array overflowed
   kBoundaryError = 4,              // inconsistent predicates: removed region not a disc
   kDuplicate = 5,                  // exact copy of a lower-index point: empty cell
+  kIllConditioned = 6,             // integrals cancel beyond what the arithmetic resolves
 };
 
 }  // namespace core

@@ -4,7 +4,7 @@
 // so no N x k neighbour array ever exists. Failed cells are retried with what
 // their status asks for: more neighbours, larger arrays, or more precision
 // (float64, then double-double on the CPU, where an inconsistent clip may also
-// widen its predicate band). A cell that fails every pass keeps its status
+// widen its predicate band; ill-conditioned integrals ask for precision too). A cell that fails every pass keeps its status
 // and NaN outputs.
 #pragma once
 
@@ -263,7 +263,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     };
     const at::Tensor asks =
         at::stack({any({core::kSecurityRadiusNotReached}),
-                   any({core::kTooManyPlanes, core::kTooManyVertices}), any({core::kBoundaryError})})
+                   any({core::kTooManyPlanes, core::kTooManyVertices}),
+                   any({core::kBoundaryError, core::kIllConditioned})})
             .to(at::kCPU);
     const bool* ask = asks.data_ptr<bool>();
     PassSettings next = pass;
