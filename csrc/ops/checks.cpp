@@ -1,5 +1,6 @@
 #include "checks.h"
 
+#include <cmath>
 #include <string>
 #include <utility>
 #include <vector>
@@ -27,30 +28,6 @@ void check_points(const at::Tensor& points, const char* name) {
   TORCH_CHECK_VALUE(points.size(0) < (int64_t(1) << 31) - 1, "torchvor: ", name,
                     " has too many points (at most 2^31 - 2)");
 }
-
-// Value checks that need the data: each is a 0-dim bool tensor on the data's
-// device, all read back to the host at once (one device sync, not one each)
-// and reported in the order they were added.
-class ValueChecks {
- public:
-  void add(at::Tensor holds, std::string message) {
-    conditions_.push_back(std::move(holds));
-    messages_.push_back(std::move(message));
-  }
-  void finite(const at::Tensor& values, const char* name) {
-    add(at::isfinite(values).all(), std::string("torchvor: ") + name + " contains NaN or Inf coordinates");
-  }
-  void run() const {
-    if (conditions_.empty()) return;
-    const at::Tensor holds = at::stack(conditions_).to(at::kCPU);
-    const bool* flag = holds.data_ptr<bool>();
-    for (size_t c = 0; c < messages_.size(); ++c) TORCH_CHECK_VALUE(flag[c], messages_[c]);
-  }
-
- private:
-  std::vector<at::Tensor> conditions_;
-  std::vector<std::string> messages_;
-};
 
 void check_same_device(const at::Tensor& a, const char* a_name, const at::Tensor& b,
                               const char* b_name) {
@@ -89,6 +66,25 @@ void check_like_points(const at::Tensor& points, const at::Tensor& other, const 
 
 }  // namespace
 
+void ValueChecks::add(at::Tensor holds, std::string message) {
+  conditions_.push_back(std::move(holds));
+  messages_.push_back(std::move(message));
+}
+
+void ValueChecks::finite(const at::Tensor& values, const char* name) {
+  add(at::isfinite(values).all(), std::string("torchvor: ") + name + " contains NaN or Inf coordinates");
+}
+
+void ValueChecks::verify(const double* holds) const {
+  for (size_t c = 0; c < messages_.size(); ++c) TORCH_CHECK_VALUE(holds[c] != 0.0, messages_[c]);
+}
+
+void ValueChecks::run() const {
+  if (conditions_.empty()) return;
+  const at::Tensor holds = at::stack(conditions_).to(at::kDouble).to(at::kCPU).contiguous();
+  verify(holds.data_ptr<double>());
+}
+
 int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, int64_t k,
                          const c10::optional<at::Tensor>& points_batch,
                          const c10::optional<at::Tensor>& queries_batch, bool exclude_self) {
@@ -105,11 +101,14 @@ int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, in
   }
   const int64_t points_batches = check_batch(points_batch, n, points, "batch");
   const int64_t query_batches = check_batch(queries_batch, m, points, "query_batch");
+  return std::max(points_batches, query_batches);
+}
+
+ValueChecks knn_value_checks(const at::Tensor& points, const at::Tensor& queries) {
   ValueChecks values;
   values.finite(points, "points");
   values.finite(queries, "queries");
-  values.run();
-  return std::max(points_batches, query_batches);
+  return values;
 }
 
 void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
@@ -128,21 +127,30 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                     "torchvor: without a batch vector, box must have shape (1, 2, 3)");
   TORCH_CHECK_VALUE(batches <= num_boxes, "torchvor: batch refers to ", batches,
                     " point clouds but box holds ", num_boxes);
-  ValueChecks values;
-  values.finite(points, "points");
-  values.finite(box, "box");
-  values.add((box.select(1, 0) <= box.select(1, 1)).all(),
-             "torchvor: box must satisfy lo <= hi on every axis");
-  if (n > 0) {
-    at::Tensor lo = box.select(1, 0), hi = box.select(1, 1);
-    if (batch.has_value()) {
-      lo = lo.index_select(0, *batch);
-      hi = hi.index_select(0, *batch);
-    }
-    values.add(((points >= lo) & (points <= hi)).all(),
-               "torchvor: points must lie inside box (lo <= p <= hi)");
+}
+
+void check_voronoi_values(const at::Tensor& bounds, bool points_finite, const double* box,
+                          int64_t num_boxes) {
+  TORCH_CHECK_VALUE(points_finite, "torchvor: points contains NaN or Inf coordinates");
+  for (int64_t v = 0; v < 6 * num_boxes; ++v) {
+    TORCH_CHECK_VALUE(std::isfinite(box[v]), "torchvor: box contains NaN or Inf coordinates");
   }
-  values.run();
+  for (int64_t b = 0; b < num_boxes; ++b) {
+    for (int a = 0; a < 3; ++a) {
+      TORCH_CHECK_VALUE(box[6 * b + a] <= box[6 * b + 3 + a],
+                        "torchvor: box must satisfy lo <= hi on every axis");
+    }
+  }
+  // Inside the box: each batch element's bounding box inside its box (both
+  // exact in double, so this is the comparison lo <= p <= hi itself).
+  const double* row = bounds.data_ptr<double>();
+  for (int64_t b = 0; b < bounds.size(0); ++b, row += 7) {
+    if (row[6] == 0.0) continue;  // no points
+    for (int a = 0; a < 3; ++a) {
+      TORCH_CHECK_VALUE(row[a] >= box[6 * b + a] && row[3 + a] <= box[6 * b + 3 + a],
+                        "torchvor: points must lie inside box (lo <= p <= hi)");
+    }
+  }
 }
 
 }  // namespace ops

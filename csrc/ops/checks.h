@@ -7,21 +7,51 @@
 #include <ATen/ATen.h>
 
 #include <cstdint>
+#include <string>
+#include <vector>
 
 namespace torchvor {
 namespace ops {
 
 // Validates the arguments of torchvor::knn; returns the number of batch
 // elements (max of both batch vectors + 1, or 1 without batches).
+// Value checks that need the data: each is a 0-dim bool tensor on the data's
+// device. They are read back to the host together (one device sync, not one
+// each), by run() or along with other values (conditions() / verify()), and
+// reported in the order they were added.
+class ValueChecks {
+ public:
+  void add(at::Tensor holds, std::string message);
+  void finite(const at::Tensor& values, const char* name);  // no NaN or Inf in values
+  const std::vector<at::Tensor>& conditions() const { return conditions_; }
+  void verify(const double* holds) const;  // one value per condition, as read back
+  void run() const;
+
+ private:
+  std::vector<at::Tensor> conditions_;
+  std::vector<std::string> messages_;
+};
+
+// Shapes, dtypes, devices, k and the batch vectors (not the values of points
+// and queries: see knn_value_checks). Returns the number of batch elements.
 int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, int64_t k,
                          const c10::optional<at::Tensor>& points_batch,
                          const c10::optional<at::Tensor>& queries_batch, bool exclude_self);
 
 // Validates the arguments of torchvor::voronoi_cells, including that every
 // point lies inside its box.
+ValueChecks knn_value_checks(const at::Tensor& points, const at::Tensor& queries);
+
+// Everything but the values of points and box (see check_voronoi_values).
 void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                           const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                           int64_t memory_budget);
+
+// The values, from what the host read: `bounds` (B, 7) rows of the points'
+// bounding box and count per batch element (grid.h, point_bounds), whether
+// the points are all finite, and the box (B, 2, 3) values.
+void check_voronoi_values(const at::Tensor& bounds, bool points_finite, const double* box,
+                          int64_t num_boxes);
 
 }  // namespace ops
 }  // namespace torchvor

@@ -69,93 +69,139 @@ inline void grid_shape(const double extent[3], int64_t count, double points_per_
   }
 }
 
-// Flat cell id of every point (same rounding as core::grid_coordinate).
-inline at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
-                           const Grid& grid) {
-  at::Tensor origin = grid.origin, cell_size = grid.cell_size, dims = grid.dims.to(at::kLong),
-             offset = grid.cell_offset.to(at::kLong);
-  if (batch.has_value()) {
-    origin = origin.index_select(0, *batch);
-    cell_size = cell_size.index_select(0, *batch);
-    dims = dims.index_select(0, *batch);
-    offset = offset.index_select(0, *batch);
+// Flat cell id (int32) of every point, computed by core::grid_coordinate:
+// the assignment the kNN search assumes, on either backend, in one pass
+// (the tensor-op version took a dozen kernel launches on the GPU).
+template <typename T>
+struct CellIdFunctor {
+  const T* points;          // (N, 3)
+  const int64_t* batch;     // (N,) or nullptr
+  const T* origin;          // (B, 3)
+  const T* cell_size;       // (B,)
+  const int32_t* dims;      // (B, 3)
+  const int32_t* cell_offset;  // (B,)
+  int32_t* ids;             // (N,)
+
+  TV_HD void operator()(int64_t i) const {
+    const int64_t b = batch ? batch[i] : 0;
+    const T h = cell_size[b];
+    const int32_t dx = dims[3 * b], dy = dims[3 * b + 1], dz = dims[3 * b + 2];
+    const int32_t x = core::grid_coordinate(points[3 * i], origin[3 * b], h, dx);
+    const int32_t y = core::grid_coordinate(points[3 * i + 1], origin[3 * b + 1], h, dy);
+    const int32_t z = core::grid_coordinate(points[3 * i + 2], origin[3 * b + 2], h, dz);
+    ids[i] = cell_offset[b] + (z * dy + y) * dx + x;
   }
-  at::Tensor coord = ((points - origin) / cell_size.unsqueeze(-1)).floor().clamp_min(0);
-  // clamp before the cast: coordinates far outside the grid must not overflow
-  coord = at::minimum(coord, (dims - 1).to(coord.scalar_type())).to(at::kLong);
-  at::Tensor x = coord.select(-1, 0), y = coord.select(-1, 1), z = coord.select(-1, 2);
-  at::Tensor dx = dims.select(-1, 0), dy = dims.select(-1, 1);
-  return offset + (z * dy + y) * dx + x;
+};
+
+template <typename Exec>
+at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
+                    const Grid& grid) {
+  at::Tensor ids = at::empty({points.size(0)}, points.options().dtype(at::kInt));
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::cell_ids", [&] {
+    const CellIdFunctor<scalar_t> functor{
+        points.data_ptr<scalar_t>(), batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+        grid.origin.data_ptr<scalar_t>(), grid.cell_size.data_ptr<scalar_t>(),
+        grid.dims.data_ptr<int32_t>(), grid.cell_offset.data_ptr<int32_t>(), ids.data_ptr<int32_t>()};
+    Exec::for_each(points.size(0), functor);
+  });
+  return ids;
 }
 
-// Grid over the bounding box of each batch element's points.
-inline Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
-                       int64_t num_batches, double points_per_cell) {
+// Per batch element, on the host: the points' bounding box and count, rows
+// (lo x, y, z, hi x, y, z, count) in double, read in one device-to-host copy
+// (each copy waits for the device). The values of `extra` (tensors on the
+// points' device: value checks, the box) travel in the same copy, flattened
+// in order into `extra_out`.
+inline at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
+                               int64_t num_batches, const std::vector<at::Tensor>& extra = {},
+                               std::vector<double>* extra_out = nullptr) {
   const int64_t n = points.size(0);
   const auto options = points.options();
-  // Per-batch bounding boxes and counts, on the points' device, then to the
-  // host in one copy (every device-to-host copy waits for the device).
-  // Rows of `summary`: lo (3), hi (3), count (1), in double (exact for
-  // counts below 2^53).
-  at::Tensor summary;
   const auto as_double = [](const at::Tensor& t) { return t.to(at::kDouble); };
+  at::Tensor rows;
   if (batch.has_value()) {
     at::Tensor index = batch->unsqueeze(1).expand({n, 3});
-    at::Tensor lo = at::full({num_batches, 3}, INFINITY, options)
-                        .scatter_reduce(0, index, points, "amin");
-    at::Tensor hi = at::full({num_batches, 3}, -INFINITY, options)
-                        .scatter_reduce(0, index, points, "amax");
+    at::Tensor lo = at::full({num_batches, 3}, INFINITY, options).scatter_reduce(0, index, points, "amin");
+    at::Tensor hi = at::full({num_batches, 3}, -INFINITY, options).scatter_reduce(0, index, points, "amax");
     at::Tensor counts = at::bincount(*batch, {}, num_batches).unsqueeze(1);
-    summary = at::cat({as_double(lo), as_double(hi), as_double(counts)}, 1).to(at::kCPU);
+    rows = at::cat({as_double(lo), as_double(hi), as_double(counts)}, 1).flatten();
   } else if (n > 0) {
-    at::Tensor lo = std::get<0>(points.min(0));
-    at::Tensor hi = std::get<0>(points.max(0));
-    const at::Tensor count = at::full({1}, double(n), lo.options().dtype(at::kDouble));
-    summary = at::cat({as_double(at::stack({lo, hi})).flatten(), count}).unsqueeze(0).to(at::kCPU);
+    const auto minmax = at::aminmax(points, 0);
+    rows = at::cat({as_double(std::get<0>(minmax)), as_double(std::get<1>(minmax)),
+                    at::full({1}, double(n), options.dtype(at::kDouble))});
   } else {
-    summary = at::zeros({1, 7}, at::kDouble);
+    rows = at::zeros({7}, options.dtype(at::kDouble));
   }
-  summary = summary.contiguous();
-  const double* summary_ptr = summary.data_ptr<double>();
+  std::vector<at::Tensor> parts = {rows};
+  for (const at::Tensor& e : extra) parts.push_back(as_double(e).flatten());
+  const at::Tensor host = at::cat(parts).to(at::kCPU).contiguous();
+  if (extra_out != nullptr) {
+    const double* values = host.data_ptr<double>();
+    extra_out->assign(values + 7 * num_batches, values + host.numel());
+  }
+  return host.slice(0, 0, 7 * num_batches).view({num_batches, 7});
+}
 
-  // Grid parameters per batch element, built on the host and copied to the
-  // device in one go: origin (3), cell size (1), dims (3), first cell (1),
-  // all exact in double.
-  at::Tensor params_host = at::empty({num_batches, 8}, at::kDouble);
-  double* params = params_host.data_ptr<double>();
+// Grid over the bounding box of each batch element's points; `bounds` is
+// point_bounds() of them (read here when not given).
+template <typename Exec>
+Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
+                int64_t num_batches, double points_per_cell, at::Tensor bounds = {}) {
+  if (!bounds.defined()) bounds = point_bounds(points, batch, num_batches);
+  const double* bounds_ptr = bounds.data_ptr<double>();
+
+  // Grid parameters per batch element, built on the host and sent to the
+  // device in one copy of one byte buffer, viewed as origin (B, 3) and cell
+  // size (B,) in the points' dtype, dims (B, 3) and first cell id (B,) int32.
+  const int64_t real_size = points.element_size();
+  const auto aligned = [](int64_t bytes) { return (bytes + 7) / 8 * 8; };
+  const int64_t origin_at = 0;
+  const int64_t size_at = origin_at + aligned(3 * num_batches * real_size);
+  const int64_t dims_at = size_at + aligned(num_batches * real_size);
+  const int64_t offset_at = dims_at + aligned(3 * num_batches * 4);
+  const int64_t total_bytes = offset_at + aligned(num_batches * 4);
+  at::Tensor params_host = at::empty({total_bytes}, at::kByte);
+  unsigned char* params = params_host.data_ptr<unsigned char>();
   int64_t total_cells = 0;
   for (int64_t b = 0; b < num_batches; ++b) {
-    const double* row = summary_ptr + 7 * b;  // lo, hi, count
-    double* out = params + 8 * b;
-    double extent[3], cell_size;
+    const double* row = bounds_ptr + 7 * b;  // lo, hi, count
+    double extent[3], origin[3], cell_size;
     int32_t dims[3];
     const int64_t count = static_cast<int64_t>(row[6]);
     for (int a = 0; a < 3; ++a) {
       extent[a] = count == 0 ? 0.0 : row[3 + a] - row[a];
-      out[a] = count == 0 ? 0.0 : row[a];
+      origin[a] = count == 0 ? 0.0 : row[a];
     }
     grid_shape(extent, count, points_per_cell, cell_size, dims);
-    out[3] = cell_size;
-    for (int a = 0; a < 3; ++a) out[4 + a] = dims[a];
-    out[7] = static_cast<double>(total_cells);
+    AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::build_grid", [&] {
+      scalar_t* origin_out = reinterpret_cast<scalar_t*>(params + origin_at) + 3 * b;
+      for (int a = 0; a < 3; ++a) origin_out[a] = static_cast<scalar_t>(origin[a]);
+      reinterpret_cast<scalar_t*>(params + size_at)[b] = static_cast<scalar_t>(cell_size);
+    });
+    for (int a = 0; a < 3; ++a) reinterpret_cast<int32_t*>(params + dims_at)[3 * b + a] = dims[a];
+    reinterpret_cast<int32_t*>(params + offset_at)[b] = static_cast<int32_t>(total_cells);
     total_cells += int64_t(dims[0]) * dims[1] * dims[2];
     TORCH_CHECK(total_cells < (int64_t(1) << 31), "torchvor: grid too large");
   }
 
   Grid grid;
   const at::Tensor params_device = params_host.to(points.device());
-  grid.origin = params_device.slice(1, 0, 3).to(points.scalar_type()).contiguous();
-  grid.cell_size = params_device.select(1, 3).to(points.scalar_type()).contiguous();
-  grid.dims = params_device.slice(1, 4, 7).to(at::kInt).contiguous();
-  grid.cell_offset = params_device.select(1, 7).to(at::kInt).contiguous();
-  at::Tensor ids = cell_ids(points, batch, grid);
+  const auto region = [&](int64_t at, int64_t count, at::ScalarType type) {
+    return params_device.slice(0, at, at + count * at::elementSize(type)).view(type);
+  };
+  grid.origin = region(origin_at, 3 * num_batches, points.scalar_type()).view({num_batches, 3});
+  grid.cell_size = region(size_at, num_batches, points.scalar_type());
+  grid.dims = region(dims_at, 3 * num_batches, at::kInt).view({num_batches, 3});
+  grid.cell_offset = region(offset_at, num_batches, at::kInt);
+  // int32 ids: the radix sort takes half the passes of int64 keys.
+  const at::Tensor ids = cell_ids<Exec>(points, batch, grid);
   auto sorted = at::sort(ids, /*stable=*/true, /*dim=*/0, /*descending=*/false);
-  at::Tensor sorted_ids = std::get<0>(sorted);
-  at::Tensor permutation = std::get<1>(sorted);
+  const at::Tensor sorted_ids = std::get<0>(sorted);
+  const at::Tensor permutation = std::get<1>(sorted);
   grid.sorted_points = points.index_select(0, permutation).contiguous();
   grid.sorted_index = permutation.to(at::kInt);
-  grid.cell_start =
-      at::searchsorted(sorted_ids, at::arange(total_cells + 1, sorted_ids.options())).to(at::kInt);
+  grid.cell_start = at::searchsorted(sorted_ids, at::arange(total_cells + 1, sorted_ids.options()),
+                                     /*out_int32=*/true);
   return grid;
 }
 

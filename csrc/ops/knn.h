@@ -80,17 +80,25 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   const int64_t m = queries_in.size(0);
   at::Tensor dist2 = Exec::empty({m, k}, queries_in.options());
   at::Tensor index = Exec::empty({m, k}, queries_in.options().dtype(at::kLong));
-  if (m == 0) return {dist2, index};
   const at::Tensor points = points_in.contiguous();
   const at::Tensor queries = queries_in.contiguous();
-  const Grid grid = build_grid(points, points_batch, num_batches, points_per_cell_for(k));
+  const ValueChecks values = knn_value_checks(points, queries);
+  if (m == 0) {
+    values.run();
+    return {dist2, index};
+  }
+  // The value checks travel with the grid's bounds: one device sync.
+  std::vector<double> holds;
+  const at::Tensor bounds = point_bounds(points, points_batch, num_batches, values.conditions(), &holds);
+  values.verify(holds.data());
+  const Grid grid = build_grid<Exec>(points, points_batch, num_batches, points_per_cell_for(k), bounds);
   // Visit queries in grid order: neighbouring queries read the same cells.
   // When the queries are the points, the grid's sorted copy holds them in
   // that order already (sequential reads).
   const bool queries_are_points = exclude_self && !points_batch.has_value();
   const at::Tensor order = queries_are_points
                                ? grid.sorted_index
-                               : cell_ids(queries, queries_batch, grid).argsort().to(at::kInt);
+                               : cell_ids<Exec>(queries, queries_batch, grid).argsort().to(at::kInt);
   const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
     run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), ordered_queries.data_ptr<scalar_t>(),

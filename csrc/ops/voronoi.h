@@ -193,6 +193,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   const at::Tensor box = box_in.contiguous();
   const c10::optional<at::Tensor> batch =
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
+  // One read from the device for the value checks and the grid: the points'
+  // bounds per batch element, whether they are all finite, and the box.
+  std::vector<double> read;
+  const at::Tensor bounds = point_bounds(points, batch, num_boxes, {at::isfinite(points).all(), box}, &read);
+  check_voronoi_values(bounds, read[0] != 0.0, read.data() + 1, num_boxes);
   VoronoiOutputs out;
   const auto options = points.options();
   out.volume = at::full({n}, NAN, options);
@@ -206,9 +211,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
 
   // The largest batch element bounds the useful k: a query that asks for as
   // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
-  const int64_t largest_cloud = batch.has_value()
-                                    ? at::bincount(*batch, {}, num_boxes).max().item<int64_t>()
-                                    : n;
+  int64_t largest_cloud = 0;  // from the counts already read with the bounds
+  for (int64_t b = 0; b < num_boxes; ++b) {
+    largest_cloud = std::max(largest_cloud, static_cast<int64_t>(bounds.data_ptr<double>()[7 * b + 6]));
+  }
   // Work in grid order: cells, neighbours and outputs are numbered by their
   // position in the grid's sorted order, so that nearby cells (nearby
   // threads) read nearby neighbour coordinates from cache; the outputs go
@@ -218,7 +224,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   at::Tensor permutation, work_points;  // position -> caller's index; points by position
   c10::optional<at::Tensor> work_batch;
   const auto sort_into_grid = [&](double points_per_cell) {
-    const Grid sorted = build_grid(points, batch, num_boxes, points_per_cell);
+    const Grid sorted = build_grid<Exec>(points, batch, num_boxes, points_per_cell, bounds);
     permutation = sorted.sorted_index.to(at::kLong);
     grid = sorted;
     grid.sorted_index = at::arange(n, sorted.sorted_index.options());
@@ -249,24 +255,21 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
     run(pending, pass);
-    const at::Tensor status = out.status.index_select(0, pending);
-    const at::Tensor failed = (status != int64_t(core::kSuccess)) & (status != int64_t(core::kDuplicate));
-    pending = pending.masked_select(failed);
-    if (pending.size(0) == 0) break;
+    // Which status codes this pass produced, in one read (one device sync);
+    // the failed cells are gathered only when there are some.
+    const at::Tensor status = attempt == 0 ? out.status : out.status.index_select(0, pending);
+    const int64_t first_code = core::kNotComputed, end_code = core::kIllConditioned + 1;
+    const at::Tensor seen_host =
+        (status.unsqueeze(1) == at::arange(first_code, end_code, status.options())).any(0).to(at::kCPU);
+    const bool* seen_ptr = seen_host.data_ptr<bool>();
+    const auto seen = [&](core::CellStatus code) { return seen_ptr[code - first_code]; };
+    const bool ask[3] = {seen(core::kSecurityRadiusNotReached),
+                         seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
+                         seen(core::kBoundaryError) || seen(core::kIllConditioned)};
+    if (!(ask[0] || ask[1] || ask[2] || seen(core::kNotComputed))) break;
+    pending = pending.masked_select((status != int64_t(core::kSuccess)) &
+                                    (status != int64_t(core::kDuplicate)));
     // Escalate what the failures ask for; stop when nothing is left to raise.
-    // The three questions travel to the host in one read (one device sync).
-    const at::Tensor failed_status = status.masked_select(failed);
-    const auto any = [&](std::initializer_list<core::CellStatus> codes) {
-      at::Tensor hit = at::zeros_like(failed_status, at::kBool);
-      for (const core::CellStatus code : codes) hit |= failed_status == int64_t(code);
-      return hit.any();
-    };
-    const at::Tensor asks =
-        at::stack({any({core::kSecurityRadiusNotReached}),
-                   any({core::kTooManyPlanes, core::kTooManyVertices}),
-                   any({core::kBoundaryError, core::kIllConditioned})})
-            .to(at::kCPU);
-    const bool* ask = asks.data_ptr<bool>();
     PassSettings next = pass;
     // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
     // (2 CPU cores, 100K white / perturbed / blue: 502 / 396 / 256 ms at 2x,
