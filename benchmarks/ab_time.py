@@ -1,5 +1,6 @@
 """A/B helper for the GPU machine: wall and per-kernel time of one voronoi
-call on 1M blue noise (k=24) and one kNN call (1M jittered, k=35)."""
+call on 1M blue noise (k=24) and one kNN call (1M jittered, k=35), and the
+wall time of one Lloyd iteration on the blue noise (k=24)."""
 import os
 import statistics
 import sys
@@ -47,5 +48,7 @@ def kernels(fn):
 label = sys.argv[1] if len(sys.argv) > 1 else "?"
 vor = lambda: torchvor.voronoi(blue, box, k=24, on_failure="flag")
 knn = lambda: torchvor.knn(jittered, 35)
+step = lambda: torchvor.lloyd(blue, box, iters=1, k=24)
 print(f"{label}: voronoi 1M blue k=24 {timed(vor):.2f} ms {kernels(vor)}; "
-      f"knn 1M jittered k=35 {timed(knn):.2f} ms {kernels(knn)}", flush=True)
+      f"knn 1M jittered k=35 {timed(knn):.2f} ms {kernels(knn)}; "
+      f"lloyd iteration 1M blue k=24 {timed(step):.2f} ms", flush=True)
