@@ -36,7 +36,8 @@ struct ClipFunctor {
   int32_t chunk;               // cells in this chunk (the column stride)
   T tolerance;
   int band_widenings;          // > 0 only in the last-resort pass
-  bool rows_by_step;           // write row t (chunk-local outputs) instead of row cells[t]
+  bool rows_by_step;           // write row t (chunk-local outputs) instead of the cell's row
+  const int32_t* row_of_position;  // (N,) the caller's row of the cell at each grid position
   io_t* volume;                // (N,)
   io_t* centroid;              // (N, 3)
   io_t* second_moment;         // (N,)
@@ -51,7 +52,7 @@ struct ClipFunctor {
         cell, points, cell_id, neighbors + (neighbors_column_major ? t : t * int64_t(k)),
         neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b, tolerance,
         band_widenings);
-    const int64_t i = rows_by_step ? t : cell_id;
+    const int64_t i = rows_by_step ? t : row_of_position[cell_id];
     volume[i] = static_cast<io_t>(out.volume);
     centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
     centroid[3 * int64_t(i) + 1] = static_cast<io_t>(out.centroid.y);
@@ -75,9 +76,52 @@ struct PassSettings {
   }
 };
 
+// The outputs, in the caller's row order, and where each grid position (the
+// numbering the passes work in) writes.
 struct VoronoiOutputs {
   at::Tensor volume, centroid, second_moment, status, num_neighbors;
+  at::Tensor row_of_position;  // (N,) int32
 };
+
+// Every output starts as "not computed" (NaN, status -1, 0 neighbours), all
+// in one kernel: an element that no pass writes shows up.
+template <typename io_t>
+struct PoisonFunctor {
+  io_t* volume;
+  io_t* centroid;
+  io_t* second_moment;
+  int8_t* status;
+  int32_t* num_neighbors;
+
+  TV_HD void operator()(int64_t i) const {
+    const io_t zero = io_t(0);
+    const io_t nan = zero / zero;
+    volume[i] = nan;
+    centroid[3 * i] = nan;
+    centroid[3 * i + 1] = nan;
+    centroid[3 * i + 2] = nan;
+    second_moment[i] = nan;
+    status[i] = core::kNotComputed;
+    num_neighbors[i] = 0;
+  }
+};
+
+template <typename Exec>
+VoronoiOutputs poisoned_outputs(int64_t n, const at::TensorOptions& options) {
+  VoronoiOutputs out;
+  out.volume = at::empty({n}, options);
+  out.centroid = at::empty({n, 3}, options);
+  out.second_moment = at::empty({n}, options);
+  out.status = at::empty({n}, options.dtype(at::kChar));
+  out.num_neighbors = at::empty({n}, options.dtype(at::kInt));
+  AT_DISPATCH_FLOATING_TYPES(out.volume.scalar_type(), "torchvor::voronoi_poison", [&] {
+    const PoisonFunctor<scalar_t> functor{out.volume.data_ptr<scalar_t>(), out.centroid.data_ptr<scalar_t>(),
+                                          out.second_moment.data_ptr<scalar_t>(),
+                                          out.status.data_ptr<int8_t>(), out.num_neighbors.data_ptr<int32_t>()};
+    Exec::for_each(n, functor);
+  });
+  return out;
+}
 
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
@@ -91,6 +135,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
       T(core::ClipTolerance<T>::value),
       band_widenings,                 rows_by_step,
+      rows_by_step ? nullptr : out.row_of_position.data_ptr<int32_t>(),
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
@@ -129,7 +174,7 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
       cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
       /*band_widenings=*/6, /*rows_by_step=*/true, part);
-  const at::Tensor rows = cells.to(at::kLong);
+  const at::Tensor rows = out.row_of_position.index_select(0, cells).to(at::kLong);
   out.volume.index_copy_(0, rows, part.volume.to(out.volume.device()));
   out.centroid.index_copy_(0, rows, part.centroid.to(out.centroid.device()));
   out.second_moment.index_copy_(0, rows, part.second_moment.to(out.second_moment.device()));
@@ -177,7 +222,8 @@ int64_t pilot_k(const Grid& grid, int64_t largest_cloud, const Run& run, Voronoi
   const int64_t stride = std::max<int64_t>(1, n / 1024);
   const at::Tensor sample = grid.sorted_index.slice(0, 0, n, stride).contiguous();
   run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput});
-  const at::Tensor needed = out.num_neighbors.index_select(0, sample).to(at::kFloat);
+  const at::Tensor rows = out.row_of_position.index_select(0, sample);
+  const at::Tensor needed = out.num_neighbors.index_select(0, rows).to(at::kFloat);
   const int64_t p90 = static_cast<int64_t>(at::quantile(needed, 0.9).item<float>());
   return std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2));
 }
@@ -198,13 +244,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   std::vector<double> read;
   const at::Tensor bounds = point_bounds(points, batch, num_boxes, {at::isfinite(points).all(), box}, &read);
   check_voronoi_values(bounds, read[0] != 0.0, read.data() + 1, num_boxes);
-  VoronoiOutputs out;
-  const auto options = points.options();
-  out.volume = at::full({n}, NAN, options);
-  out.centroid = at::full({n, 3}, NAN, options);
-  out.second_moment = at::full({n}, NAN, options);
-  out.status = at::full({n}, int64_t(core::kNotComputed), options.dtype(at::kChar));
-  out.num_neighbors = at::zeros({n}, options.dtype(at::kInt));
+  VoronoiOutputs out = poisoned_outputs<Exec>(n, points.options());
   if (n == 0) {
     return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
   }
@@ -215,21 +255,21 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   for (int64_t b = 0; b < num_boxes; ++b) {
     largest_cloud = std::max(largest_cloud, static_cast<int64_t>(bounds.data_ptr<double>()[7 * b + 6]));
   }
-  // Work in grid order: cells, neighbours and outputs are numbered by their
-  // position in the grid's sorted order, so that nearby cells (nearby
-  // threads) read nearby neighbour coordinates from cache; the outputs go
-  // back to the caller's order at the end. The sort is stable, so exact
+  // Work in grid order: cells and neighbours are numbered by their position
+  // in the grid's sorted order, so that nearby cells (nearby threads) read
+  // nearby neighbour coordinates from cache; each cell writes its outputs to
+  // the caller's row (out.row_of_position). The sort is stable, so exact
   // duplicates keep their order and "the lowest index keeps the cell" holds.
   Grid grid;
-  at::Tensor permutation, work_points;  // position -> caller's index; points by position
+  at::Tensor work_points;  // points by position
   c10::optional<at::Tensor> work_batch;
   const auto sort_into_grid = [&](double points_per_cell) {
     const Grid sorted = build_grid<Exec>(points, batch, num_boxes, points_per_cell, bounds);
-    permutation = sorted.sorted_index.to(at::kLong);
+    out.row_of_position = sorted.sorted_index;
     grid = sorted;
     grid.sorted_index = at::arange(n, sorted.sorted_index.options());
     work_points = sorted.sorted_points;
-    work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, permutation))
+    work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
                                    : c10::nullopt;
   };
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass) {
@@ -257,7 +297,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     run(pending, pass);
     // Which status codes this pass produced, in one read (one device sync);
     // the failed cells are gathered only when there are some.
-    const at::Tensor status = attempt == 0 ? out.status : out.status.index_select(0, pending);
+    // The first pass computed every cell: its codes are those of all outputs.
+    const at::Tensor rows = attempt == 0 ? out.row_of_position : out.row_of_position.index_select(0, pending);
+    at::Tensor status = attempt == 0 ? out.status : out.status.index_select(0, rows);
     const int64_t first_code = core::kNotComputed, end_code = core::kIllConditioned + 1;
     const at::Tensor seen_host =
         (status.unsqueeze(1) == at::arange(first_code, end_code, status.options())).any(0).to(at::kCPU);
@@ -267,6 +309,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
                          seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
                          seen(core::kBoundaryError) || seen(core::kIllConditioned)};
     if (!(ask[0] || ask[1] || ask[2] || seen(core::kNotComputed))) break;
+    if (attempt == 0) status = out.status.index_select(0, rows);  // by position, as `pending`
     pending = pending.masked_select((status != int64_t(core::kSuccess)) &
                                     (status != int64_t(core::kDuplicate)));
     // Escalate what the failures ask for; stop when nothing is left to raise.
@@ -283,12 +326,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     if (next == pass) break;  // nothing left to raise
     pass = next;
   }
-  const auto to_caller_order = [&](const at::Tensor& by_position) {
-    return at::empty_like(by_position).index_copy_(0, permutation, by_position);
-  };
-  return {to_caller_order(out.volume), to_caller_order(out.centroid),
-          to_caller_order(out.second_moment), to_caller_order(out.status),
-          to_caller_order(out.num_neighbors)};
+  return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
 }
 
 }  // namespace ops
