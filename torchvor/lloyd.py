@@ -112,19 +112,27 @@ def lloyd(
     recorded energy is NaN.
     """
     _check_arguments(points, iters, tol, k)
-    current = points.detach().clone()
+    current = points.detach()  # never written in place: each iteration makes a new tensor
     box_tensor = as_box(current, box, batch).detach()
     lower, upper = _per_point_bounds(box_tensor, batch)
-    diagonal = (upper - lower).norm(dim=1)
+    # Displacements are divided by the box diagonal: a number on the host
+    # without batch (one fewer kernel per iteration), per point with it.
+    diagonal = (upper - lower).norm(dim=1).clamp_min(torch.finfo(current.dtype).tiny)
+    inverse_diagonal = 1.0 / float(diagonal) if batch is None else 1.0 / diagonal
     next_k = FIRST_K if k is None else k
     history: List[LloydStep] = []
     for iteration in range(iters):
         start = time.perf_counter()
         # "flag": failures are reported below from the same single read.
         cells = voronoi(current, box_tensor, batch=batch, k=next_k, on_failure="flag")
-        moved = _move_to_centroids(current, cells, lower, upper)
-        displacement = (moved - current).norm(dim=1) / diagonal.clamp_min(torch.finfo(current.dtype).tiny)
-        energy, max_displacement, failed, needed = _iteration_statistics(cells, displacement)
+        failed_cells = _failed_cells(cells)
+        moved = _move_to_centroids(current, cells, failed_cells, lower, upper)
+        displacement = (moved - current).norm(dim=1)
+        if batch is not None:
+            displacement = displacement * inverse_diagonal
+        energy, max_displacement, failed, needed = _iteration_statistics(cells, failed_cells, displacement)
+        if batch is None:
+            max_displacement *= inverse_diagonal
         if failed:
             warnings.warn(f"torchvor.lloyd: {failed} cell(s) could not be computed in iteration "
                           f"{iteration}; their points stay in place", RuntimeWarning, stacklevel=2)
@@ -146,6 +154,8 @@ def lloyd(
         stop_requested = callback is not None and callback(iteration, current, cells) is True
         if stop_requested or (tol is not None and step.max_displacement < tol):
             break
+    if not history:  # no iteration ran: still return a new tensor
+        current = current.clone()
     return (current, history) if return_history else current
 
 
@@ -176,17 +186,18 @@ def _failed_cells(cells: VoronoiCells) -> torch.Tensor:
     return (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
 
 
-def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.Tensor,
-                       upper: torch.Tensor) -> torch.Tensor:
+def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, failed_cells: torch.Tensor,
+                       lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
     """Centroids of the cells; a failed cell (NaN centroid) keeps its point."""
-    moved = torch.where(_failed_cells(cells).unsqueeze(1), current, cells.centroid)
+    moved = torch.where(failed_cells.unsqueeze(1), current, cells.centroid)
     # A centroid lies inside its (convex) cell, but rounding to float32 may put
     # a boundary cell's centroid an ulp outside the box, which the next
     # voronoi call would reject.
-    return torch.maximum(torch.minimum(moved, upper), lower)
+    return moved.clamp_(lower, upper)
 
 
-def _iteration_statistics(cells: VoronoiCells, displacement: torch.Tensor) -> Tuple[float, float, int, int]:
+def _iteration_statistics(cells: VoronoiCells, failed_cells: torch.Tensor,
+                          displacement: torch.Tensor) -> Tuple[float, float, int, int]:
     """(energy, max displacement, failed cells, neighbours needed by K_QUANTILE of the cells).
 
     Everything in one host read: each ``float()`` or ``.item()`` would
@@ -197,15 +208,15 @@ def _iteration_statistics(cells: VoronoiCells, displacement: torch.Tensor) -> Tu
     count = cells.neighbors.numel()
     if count == 0:
         return 0.0, 0.0, 0, 0
-    bins = 1024  # beyond any useful k
-    histogram = torch.histc(cells.neighbors.float().clamp(0, bins - 1), bins=bins, min=0, max=bins)
+    bins = 1024  # beyond any useful k; a cell that needed more counts as needing 1024
+    histogram = torch.histc(cells.neighbors.float(), bins=bins, min=0, max=bins)
     rank = min(count, max(1, math.ceil(K_QUANTILE * count)))
-    needed = (histogram.cumsum(0) < rank).sum()
+    needed = (histogram.cumsum(0) < rank).sum(dtype=torch.float64)
     stats = torch.stack([
         cells.second_moment.sum(dtype=torch.float64),
         displacement.max().double(),
-        _failed_cells(cells).sum().double(),
-        needed.double(),
+        failed_cells.sum(dtype=torch.float64),
+        needed,
     ]).tolist()
     return stats[0], stats[1], int(stats[2]), int(stats[3])
 
