@@ -327,6 +327,24 @@ def test_needle_cell_exact_float64(device):
     check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
 
 
+def test_ill_conditioned_float32_cell_recomputed_in_float64(device):
+    """Found by scanning tight clusters (spread 1e-6, seed 25): cell 5's
+    tetrahedra cancel beyond float32's resolution. Computed in float32 it came
+    out 2.8e-4 off the float64 computation of the same (float32-rounded)
+    points; flagged ILL_CONDITIONED and recomputed in float64, it must match
+    that to float32 output rounding (the scan's worst cell: 3e-6)."""
+    gen = torch.Generator()
+    gen.manual_seed(25)
+    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    points = centres.repeat_interleave(40, 0) + 1e-6 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
+    points = points.clamp(0, 1).float()
+    cells = run(points.to(device), UNIT)
+    reference = run(points.double(), UNIT)
+    assert cells.status[5].item() == CellStatus.SUCCESS
+    assert cells.volume[5].item() == pytest.approx(reference.volume[5].item(), rel=1e-5, abs=0)
+    assert cells.second_moment[5].item() == pytest.approx(reference.second_moment[5].item(), rel=1e-5, abs=0)
+
+
 def test_flat_box_random(device, dtype, gen):
     lo, hi = [0.0, 0.0, 0.0], [1.0, 1.0, 1e-3]
     points = rand(600, gen, dtype, device, lo, hi)
