@@ -4,15 +4,15 @@
 // so no N x k neighbour array ever exists. Failed cells are retried with what
 // their status asks for: more neighbours, larger arrays, or more precision
 // (float64, then double-double on the CPU, where an inconsistent clip may also
-// widen its predicate band; ill-conditioned integrals ask for precision too). A cell that fails every pass keeps its status
-// and NaN outputs.
+// widen its predicate band; ill-conditioned integrals ask for precision too).
+// A cell that fails every pass keeps its status and NaN outputs.
 #pragma once
 
 #include <ATen/ATen.h>
 
 #include <algorithm>
-#include <initializer_list>
 #include <tuple>
+#include <vector>
 
 #include "../core/voronoi_cell.h"
 #include "../cpu/exec.h"
