@@ -299,8 +299,7 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     relative to the seed. Exact duplicates: the lowest index owns the cell,
     higher copies get an empty cell (volume 0, centroid = the seed).
     """
-    from scipy.spatial import HalfspaceIntersection
-    from scipy.spatial import QhullError
+    from scipy.spatial import HalfspaceIntersection, QhullError
 
     pts = _np64(points)
     lo, hi = (_np64(b).reshape(3) for b in box)

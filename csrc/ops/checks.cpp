@@ -129,9 +129,7 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                     " point clouds but box holds ", num_boxes);
 }
 
-void check_voronoi_values(const at::Tensor& bounds, bool points_finite, const double* box,
-                          int64_t num_boxes) {
-  TORCH_CHECK_VALUE(points_finite, "torchvor: points contains NaN or Inf coordinates");
+void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes) {
   for (int64_t v = 0; v < 6 * num_boxes; ++v) {
     TORCH_CHECK_VALUE(std::isfinite(box[v]), "torchvor: box contains NaN or Inf coordinates");
   }

@@ -13,8 +13,6 @@
 namespace torchvor {
 namespace ops {
 
-// Validates the arguments of torchvor::knn; returns the number of batch
-// elements (max of both batch vectors + 1, or 1 without batches).
 // Value checks that need the data: each is a 0-dim bool tensor on the data's
 // device. They are read back to the host together (one device sync, not one
 // each), by run() or along with other values (conditions() / verify()), and
@@ -32,26 +30,27 @@ class ValueChecks {
   std::vector<std::string> messages_;
 };
 
-// Shapes, dtypes, devices, k and the batch vectors (not the values of points
-// and queries: see knn_value_checks). Returns the number of batch elements.
+// Validates the arguments of torchvor::knn but the values of points and
+// queries (knn_value_checks); returns the number of batch elements (max of
+// both batch vectors + 1, or 1 without batches).
 int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, int64_t k,
                          const c10::optional<at::Tensor>& points_batch,
                          const c10::optional<at::Tensor>& queries_batch, bool exclude_self);
 
-// Validates the arguments of torchvor::voronoi_cells, including that every
-// point lies inside its box.
+// Points and queries hold no NaN or Inf.
 ValueChecks knn_value_checks(const at::Tensor& points, const at::Tensor& queries);
 
-// Everything but the values of points and box (see check_voronoi_values).
+// Validates the arguments of torchvor::voronoi_cells but the values of points
+// and box (check_voronoi_values).
 void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                           const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                           int64_t memory_budget);
 
-// The values, from what the host read: `bounds` (B, 7) rows of the points'
-// bounding box and count per batch element (grid.h, point_bounds), whether
-// the points are all finite, and the box (B, 2, 3) values.
-void check_voronoi_values(const at::Tensor& bounds, bool points_finite, const double* box,
-                          int64_t num_boxes);
+// The box is finite with lo <= hi and every point lies inside its box,
+// from what the host read: `bounds` (B, 7) rows of the points' bounding box
+// and count per batch element (grid.h, point_bounds; the points are known to
+// be finite) and the box (B, 2, 3) values.
+void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes);
 
 }  // namespace ops
 }  // namespace torchvor

@@ -137,12 +137,13 @@ struct ToRowsFunctor {
 
 template <typename Exec>
 VoronoiOutputs to_caller_rows(const VoronoiOutputs& in) {
+  const auto like = [](const at::Tensor& t) { return Exec::empty(t.sizes(), t.options()); };
   VoronoiOutputs out;
-  out.volume = at::empty_like(in.volume);
-  out.centroid = at::empty_like(in.centroid);
-  out.second_moment = at::empty_like(in.second_moment);
-  out.status = at::empty_like(in.status);
-  out.num_neighbors = at::empty_like(in.num_neighbors);
+  out.volume = like(in.volume);
+  out.centroid = like(in.centroid);
+  out.second_moment = like(in.second_moment);
+  out.status = like(in.status);
+  out.num_neighbors = like(in.num_neighbors);
   AT_DISPATCH_FLOATING_TYPES(in.volume.scalar_type(), "torchvor::voronoi_to_rows", [&] {
     const ToRowsFunctor<scalar_t> functor{
         in.row_of_position.data_ptr<int32_t>(), in.volume.data_ptr<scalar_t>(),
@@ -289,9 +290,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
   // One read from the device for the value checks and the grid: the points'
   // bounds per batch element, whether they are all finite, and the box.
+  ValueChecks values;
+  values.finite(points, "points");
+  std::vector<at::Tensor> to_read = values.conditions();
+  to_read.push_back(box);
   std::vector<double> read;
-  const at::Tensor bounds = point_bounds(points, batch, num_boxes, {at::isfinite(points).all(), box}, &read);
-  check_voronoi_values(bounds, read[0] != 0.0, read.data() + 1, num_boxes);
+  const at::Tensor bounds = point_bounds(points, batch, num_boxes, to_read, &read);
+  values.verify(read.data());
+  check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
   VoronoiOutputs out = poisoned_outputs<Exec>(n, points.options());
   if (n == 0) {
     return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
