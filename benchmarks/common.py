@@ -113,7 +113,8 @@ def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         props = torch.cuda.get_device_properties(device)
         return f"{torch.cuda.get_device_name(device)} ({props.total_memory / 2**30:.0f} GiB)"
-    return f"{cpu_model()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
+    return (f"{cpu_model()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}, "
+            f"clip loop {torch.ops.torchvor.cpu_isa()}")
 
 
 def print_header(device: torch.device) -> None:

@@ -171,6 +171,30 @@ def test_random_vs_oracle(device, dtype, gen, seed, kind):
                              tag=f"box={box}")
 
 
+@pytest.mark.parametrize("kind", ["white", "clustered"])
+def test_cpu_baseline_loop_vs_oracle(monkeypatch, dtype, gen, seed, kind):
+    """On CPUs with AVX2 and FMA the CPU clips cells with a copy of its loop
+    compiled for them (csrc/cpu/isa.h), which every other CPU test exercises
+    there. TORCHVOR_CPU_ISA=baseline forces the baseline loop: it must meet the
+    same oracle and agree with the other copy up to rounding."""
+    if kind == "white":
+        points = rand(1000, gen, dtype, "cpu")
+    else:
+        points = samples.clustered(1000, clusters=12, spread=0.03, seed=seed, dtype=torch.float64).to(dtype)
+    best = run(points, UNIT)
+    monkeypatch.setenv("TORCHVOR_CPU_ISA", "baseline")
+    assert torch.ops.torchvor.cpu_isa() == "baseline"
+    baseline = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(baseline, points, [lohi], dtype)
+    check_against_oracle(baseline, points, lohi, pick_cells(points, 60, gen, *lohi), RTOL[dtype])
+    assert torch.equal(baseline.status, best.status)
+    size = float(best.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(baseline.volume, best.volume, rtol=RTOL[dtype], atol=0)
+    torch.testing.assert_close(baseline.second_moment, best.second_moment, rtol=RTOL[dtype], atol=0)
+    torch.testing.assert_close(baseline.centroid, best.centroid, rtol=0, atol=RTOL[dtype] * size)
+
+
 def test_neighbors_radius_of_security(device, gen):
     """`neighbors` counts the nearest neighbours a cell used: every true Voronoi
     neighbour is among them, and the next one is beyond twice the cell radius."""

@@ -2,6 +2,8 @@
 // CPU kernel) really runs on. A build without -fopenmp compiles
 // at::parallel_for to a serial loop without any warning; the tests compare
 // this with torch.get_num_threads().
+// torchvor::cpu_isa: the instruction set the clip loops run with (isa.h), for
+// the benchmarks' tables and the tests.
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
@@ -9,6 +11,7 @@
 #include <chrono>
 #include <mutex>
 #include <set>
+#include <string>
 #include <thread>
 
 #include "exec.h"
@@ -35,10 +38,13 @@ int64_t cpu_threads_used() {
   return static_cast<int64_t>(threads.size());
 }
 
+std::string cpu_isa_used() { return isa_name(cpu_isa()); }
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(torchvor, m) {
   m.def("cpu_threads_used() -> int", &cpu_threads_used);
+  m.def("cpu_isa() -> str", &cpu_isa_used);
 }
 
 }  // namespace cpu

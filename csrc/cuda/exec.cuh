@@ -53,6 +53,12 @@ struct CudaExec {
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 
+  // The CPU's name for a loop that may fuse multiply-adds; nvcc fuses anyway.
+  template <typename Functor>
+  static void for_each_fma(int64_t n, const Functor& functor) {
+    for_each(n, functor);
+  }
+
   // functor(i, arena) with `bytes_per_item` of scratch per item, in shared
   // memory (at most half of an SM's per block, so that two blocks fit; fewer
   // threads per block for large scratch), or in global memory beyond that.

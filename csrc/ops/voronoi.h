@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <tuple>
+#include <type_traits>
 #include <vector>
 
 #include "../core/voronoi_cell.h"
@@ -189,7 +190,12 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
-  Exec::for_each(cells.size(0), functor);
+  // Double-double's products must round separately (Dekker's split).
+  if constexpr (std::is_same<T, core::DoubleDouble>::value) {
+    Exec::for_each(cells.size(0), functor);
+  } else {
+    Exec::for_each_fma(cells.size(0), functor);
+  }
 }
 
 template <typename Exec, typename io_t, typename T>
