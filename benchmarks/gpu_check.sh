@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|bench|profile|sanitize|ncu]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|bench|sweep|profile|sanitize|ncu]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -26,6 +26,7 @@ for step in "${@:-smoke}"; do
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+    sweep) python3 benchmarks/sweep_lloyd_k.py --device cuda --sizes 1M --repeats 20 --timeline 2>&1 | grep -v USDT | tee "$OUT/sweep.log" ;;
     profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
     ncu)
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
