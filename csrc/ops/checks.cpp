@@ -144,6 +144,9 @@ void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t n
   const double* row = bounds.data_ptr<double>();
   for (int64_t b = 0; b < bounds.size(0); ++b, row += 7) {
     if (row[6] == 0.0) continue;  // no points
+    for (int v = 0; v < 6; ++v) {  // a NaN or Inf point makes its bounds NaN or Inf
+      TORCH_CHECK_VALUE(std::isfinite(row[v]), "torchvor: points contains NaN or Inf coordinates");
+    }
     for (int a = 0; a < 3; ++a) {
       TORCH_CHECK_VALUE(row[a] >= box[6 * b + a] && row[3 + a] <= box[6 * b + 3 + a],
                         "torchvor: points must lie inside box (lo <= p <= hi)");

@@ -46,10 +46,10 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                           const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                           int64_t memory_budget);
 
-// The box is finite with lo <= hi and every point lies inside its box,
-// from what the host read: `bounds` (B, 7) rows of the points' bounding box
-// and count per batch element (grid.h, point_bounds; the points are known to
-// be finite) and the box (B, 2, 3) values.
+// The box is finite with lo <= hi, the points are finite (non-finite bounds)
+// and every point lies inside its box, from what the host read: `bounds`
+// (B, 7) rows of the points' bounding box and count per batch element
+// (grid.h, point_bounds) and the box (B, 2, 3) values.
 void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes);
 
 }  // namespace ops

@@ -111,30 +111,44 @@ at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& b
 // (lo x, y, z, hi x, y, z, count) in double, read in one device-to-host copy
 // (each copy waits for the device). The values of `extra` (tensors on the
 // points' device: value checks, the box) travel in the same copy, flattened
-// in order into `extra_out`.
+// in order into `extra_out`; without a batch they travel in the points' dtype,
+// so they must be exact in it (conditions, coordinates).
+//
+// A NaN coordinate makes its element's bounds NaN (aminmax and scatter_reduce
+// propagate it on the CPU; a CUDA scatter_reduce need not: callers with a
+// batch check finiteness separately).
 inline at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
                                int64_t num_batches, const std::vector<at::Tensor>& extra = {},
                                std::vector<double>* extra_out = nullptr) {
   const int64_t n = points.size(0);
   const auto options = points.options();
-  const auto as_double = [](const at::Tensor& t) { return t.to(at::kDouble); };
-  at::Tensor rows;
+  at::Tensor host;  // the rows, then the extra values, in double
   if (batch.has_value()) {
+    const auto as_double = [](const at::Tensor& t) { return t.to(at::kDouble).flatten(); };
     at::Tensor index = batch->unsqueeze(1).expand({n, 3});
     at::Tensor lo = at::full({num_batches, 3}, INFINITY, options).scatter_reduce(0, index, points, "amin");
     at::Tensor hi = at::full({num_batches, 3}, -INFINITY, options).scatter_reduce(0, index, points, "amax");
     at::Tensor counts = at::bincount(*batch, {}, num_batches).unsqueeze(1);
-    rows = at::cat({as_double(lo), as_double(hi), as_double(counts)}, 1).flatten();
-  } else if (n > 0) {
-    const auto minmax = at::aminmax(points, 0);
-    rows = at::cat({as_double(std::get<0>(minmax)), as_double(std::get<1>(minmax)),
-                    at::full({1}, double(n), options.dtype(at::kDouble))});
+    std::vector<at::Tensor> parts = {at::cat({lo.to(at::kDouble), hi.to(at::kDouble), counts.to(at::kDouble)}, 1).flatten()};
+    for (const at::Tensor& e : extra) parts.push_back(as_double(e));
+    host = at::cat(parts).to(at::kCPU);
   } else {
-    rows = at::zeros({7}, options.dtype(at::kDouble));
+    // The common case, on the hot path of every call (and of every Lloyd
+    // iteration): no conversion kernels; the count is known here, and the
+    // host converts to double.
+    std::vector<at::Tensor> parts;
+    if (n > 0) {
+      const auto minmax = at::aminmax(points, 0);
+      parts = {std::get<0>(minmax), std::get<1>(minmax)};
+    } else {
+      parts = {at::zeros({6}, options)};
+    }
+    for (const at::Tensor& e : extra) parts.push_back(e.flatten());
+    const at::Tensor values = at::cat(parts).to(points.scalar_type()).to(at::kCPU).to(at::kDouble);
+    host = at::cat({values.slice(0, 0, 6), at::full({1}, double(n), values.options()),
+                    values.slice(0, 6, values.numel())});
   }
-  std::vector<at::Tensor> parts = {rows};
-  for (const at::Tensor& e : extra) parts.push_back(as_double(e).flatten());
-  const at::Tensor host = at::cat(parts).to(at::kCPU).contiguous();
+  host = host.contiguous();
   if (extra_out != nullptr) {
     const double* values = host.data_ptr<double>();
     extra_out->assign(values + 7 * num_batches, values + host.numel());

@@ -63,6 +63,28 @@ struct ClipFunctor {
   }
 };
 
+// After a pass: which status codes its cells got (bit code - kNotComputed of
+// `seen`) and which cells failed, in one kernel; the host reads one word.
+// Each code's bit is set once: the word is read first, so the cells of a
+// common code do not all contend for it.
+struct StatusScanFunctor {
+  const int8_t* status;   // by position
+  const int32_t* cells;   // the pass's positions
+  bool* failed;           // (cells,) not SUCCESS and not DUPLICATE
+  int32_t* seen;          // one word, zeroed
+
+  TV_HD void operator()(int64_t i) const {
+    const int8_t code = status[cells[i]];
+    failed[i] = code != core::kSuccess && code != core::kDuplicate;
+    const int32_t bit = int32_t(1) << (code - core::kNotComputed);
+#if defined(__CUDA_ARCH__)
+    if ((*reinterpret_cast<volatile int32_t*>(seen) & bit) == 0) atomicOr(seen, bit);
+#else
+    if ((__atomic_load_n(seen, __ATOMIC_RELAXED) & bit) == 0) __atomic_fetch_or(seen, bit, __ATOMIC_RELAXED);
+#endif
+  }
+};
+
 // How hard a pass tries: neighbours per cell, array tier, precision.
 enum class Precision { kInput, kFloat64, kDoubleDouble };
 
@@ -295,9 +317,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   const c10::optional<at::Tensor> batch =
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
   // One read from the device for the value checks and the grid: the points'
-  // bounds per batch element, whether they are all finite, and the box.
+  // bounds per batch element and the box. Without a batch, the bounds also
+  // say whether every point is finite (see point_bounds); with one, that is
+  // checked separately.
   ValueChecks values;
-  values.finite(points, "points");
+  if (batch.has_value()) values.finite(points, "points");
   std::vector<at::Tensor> to_read = values.conditions();
   to_read.push_back(box);
   std::vector<double> read;
@@ -357,18 +381,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     run(pending, pass);
     // Which status codes this pass produced, in one read (one device sync);
     // the failed cells are gathered only when there are some.
-    const at::Tensor status = attempt == 0 ? out.status : out.status.index_select(0, pending);
-    const int64_t first_code = core::kNotComputed, end_code = core::kIllConditioned + 1;
-    const at::Tensor seen_host =
-        (status.unsqueeze(1) == at::arange(first_code, end_code, status.options())).any(0).to(at::kCPU);
-    const bool* seen_ptr = seen_host.data_ptr<bool>();
-    const auto seen = [&](core::CellStatus code) { return seen_ptr[code - first_code]; };
+    at::Tensor failed = at::empty({pending.size(0)}, pending.options().dtype(at::kBool));
+    const at::Tensor seen_word = at::zeros({1}, pending.options());
+    Exec::for_each(pending.size(0), StatusScanFunctor{out.status.data_ptr<int8_t>(), pending.data_ptr<int32_t>(),
+                                                      failed.data_ptr<bool>(), seen_word.data_ptr<int32_t>()});
+    const int32_t seen_bits = seen_word.item<int32_t>();
+    const auto seen = [&](core::CellStatus code) { return ((seen_bits >> (code - core::kNotComputed)) & 1) != 0; };
     const bool ask[3] = {seen(core::kSecurityRadiusNotReached),
                          seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
                          seen(core::kBoundaryError) || seen(core::kIllConditioned)};
     if (!(ask[0] || ask[1] || ask[2] || seen(core::kNotComputed))) break;
-    pending = pending.masked_select((status != int64_t(core::kSuccess)) &
-                                    (status != int64_t(core::kDuplicate)));
+    pending = pending.masked_select(failed);
     // Escalate what the failures ask for; stop when nothing is left to raise.
     PassSettings next = pass;
     // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
