@@ -1,6 +1,9 @@
 """Lloyd relaxation, the CVT energy op and the LloydRelaxation module.
 
 The `device` fixture (conftest.py) runs tests on "cpu" and, when available, "cuda"."""
+import math
+import sys
+
 import pytest
 import torch
 
@@ -42,6 +45,41 @@ def test_energy_of_an_iteration_is_the_sum_of_its_second_moments(device):
     cells = torchvor.voronoi(points, UNIT_BOX)
     assert history[0].energy == pytest.approx(float(cells.second_moment.sum()), rel=1e-12, abs=0)
     torch.testing.assert_close(moved, cells.centroid, rtol=0, atol=1e-15)
+
+
+def test_neighbors_needed_is_the_99th_percentile(device):
+    points = samples.white_noise(700, seed=4, dtype=torch.float64, device=device)
+    _, history = lloyd(points, UNIT_BOX, iters=1, k=20, return_history=True)
+    needed = torch.sort(torchvor.voronoi(points, UNIT_BOX, k=20).neighbors.cpu()).values
+    assert history[0].neighbors_needed == int(needed[math.ceil(0.99 * 700) - 1])
+
+
+def test_failed_cell_keeps_its_point(device, monkeypatch):
+    """A cell that cannot be computed (NaN outputs and a failure status, as
+    torchvor.voronoi leaves it) warns, keeps its point, and makes the energy NaN;
+    every other point moves to its centroid."""
+    lloyd_module = sys.modules["torchvor.lloyd"]
+    real_voronoi = lloyd_module.voronoi
+
+    def voronoi_with_a_failure(*args, **kwargs):
+        cells = real_voronoi(*args, **kwargs)
+        status, volume, centroid, second_moment = (t.clone() for t in (
+            cells.status, cells.volume, cells.centroid, cells.second_moment))
+        status[7] = torchvor.CellStatus.BOUNDARY_ERROR
+        volume[7], centroid[7], second_moment[7] = float("nan"), float("nan"), float("nan")
+        return cells._replace(status=status, volume=volume, centroid=centroid, second_moment=second_moment)
+
+    points = samples.white_noise(400, seed=5, dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points, UNIT_BOX)
+    monkeypatch.setattr(lloyd_module, "voronoi", voronoi_with_a_failure)
+    with pytest.warns(RuntimeWarning, match="1 cell"):
+        moved, history = lloyd(points, UNIT_BOX, iters=1, return_history=True)
+    assert history[0].failed == 1 and math.isnan(history[0].energy)
+    assert torch.equal(moved[7], points[7])
+    others = torch.arange(400, device=device) != 7
+    torch.testing.assert_close(moved[others], cells.centroid[others], rtol=0, atol=1e-15)
+    expected = (cells.centroid[others] - points[others]).norm(dim=1).max().item() / 3 ** 0.5
+    assert history[0].max_displacement == pytest.approx(expected, rel=1e-12, abs=0)
 
 
 def test_lattice_is_a_fixed_point(device):

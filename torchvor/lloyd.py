@@ -21,6 +21,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, List, Optional, Tuple, Union
 
+import numpy as np
 import torch
 
 from .ops import BoxLike, CellStatus, VoronoiCells, as_box, voronoi
@@ -125,14 +126,8 @@ def lloyd(
         start = time.perf_counter()
         # "flag": failures are reported below from the same single read.
         cells = voronoi(current, box_tensor, batch=batch, k=next_k, on_failure="flag")
-        failed_cells = _failed_cells(cells)
-        moved = _move_to_centroids(current, cells, failed_cells, lower, upper)
-        displacement = (moved - current).norm(dim=1)
-        if batch is not None:
-            displacement = displacement * inverse_diagonal
-        energy, max_displacement, failed, needed = _iteration_statistics(cells, failed_cells, displacement)
-        if batch is None:
-            max_displacement *= inverse_diagonal
+        moved, energy, max_displacement, failed, needed = _move_to_centroids(
+            current, cells, lower, upper, inverse_diagonal)
         if failed:
             warnings.warn(f"torchvor.lloyd: {failed} cell(s) could not be computed in iteration "
                           f"{iteration}; their points stay in place", RuntimeWarning, stacklevel=2)
@@ -182,43 +177,46 @@ def _per_point_bounds(box: torch.Tensor, batch: Optional[torch.Tensor]) -> Tuple
     return lower.index_select(0, batch), upper.index_select(0, batch)
 
 
-def _failed_cells(cells: VoronoiCells) -> torch.Tensor:
-    return (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.Tensor, upper: torch.Tensor,
+                       inverse_diagonal: Union[float, torch.Tensor]) -> Tuple[torch.Tensor, float, float, int, int]:
+    """One Lloyd move and what it measured, with one host read:
+    (moved points, energy, max displacement / box diagonal, failed cells,
+    neighbours needed by K_QUANTILE of the cells).
 
-
-def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, failed_cells: torch.Tensor,
-                       lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
-    """Centroids of the cells; a failed cell (NaN centroid) keeps its point."""
-    moved = torch.where(failed_cells.unsqueeze(1), current, cells.centroid)
+    The tail of every iteration, so it launches few kernels: on a GPU each
+    one costs more host time than device time (1M points: ~10 launches here
+    instead of ~27). A failed cell has NaN outputs (torchvor.voronoi), which
+    make the energy NaN; only then are the failures located, and their
+    points put back. The energy is summed in float64 (a float32 total blurs
+    the small decrease of late iterations); the quantile comes from a
+    histogram read with the rest (O(N), no sort).
+    """
+    count = current.shape[0]
+    if count == 0:
+        return current.clone(), 0.0, 0.0, 0, 0
     # A centroid lies inside its (convex) cell, but rounding to float32 may put
     # a boundary cell's centroid an ulp outside the box, which the next
     # voronoi call would reject.
-    return moved.clamp_(lower, upper)
-
-
-def _iteration_statistics(cells: VoronoiCells, failed_cells: torch.Tensor,
-                          displacement: torch.Tensor) -> Tuple[float, float, int, int]:
-    """(energy, max displacement, failed cells, neighbours needed by K_QUANTILE of the cells).
-
-    Everything in one host read: each ``float()`` or ``.item()`` would
-    synchronise a CUDA device, and the loop ran 5 of them per iteration. The
-    energy is summed in float64 (a float32 total blurs the small decrease of
-    late iterations); the quantile comes from a histogram, O(N) and sort-free.
-    """
-    count = cells.neighbors.numel()
-    if count == 0:
-        return 0.0, 0.0, 0, 0
+    moved = cells.centroid.clamp(lower, upper)
+    displacement = torch.linalg.vector_norm(moved - current, dim=1)
+    if isinstance(inverse_diagonal, torch.Tensor):
+        displacement = displacement * inverse_diagonal
     bins = 1024  # beyond any useful k; a cell that needed more counts as needing 1024
-    histogram = torch.histc(cells.neighbors.float(), bins=bins, min=0, max=bins)
+    histogram = torch.histc(cells.neighbors.to(torch.float64), bins=bins, min=0, max=bins)
+    read = torch.cat([cells.second_moment.sum(dtype=torch.float64).view(1),
+                      displacement.max().view(1).to(torch.float64), histogram]).cpu().numpy()
+    energy, max_displacement = float(read[0]), float(read[1])
     rank = min(count, max(1, math.ceil(K_QUANTILE * count)))
-    needed = (histogram.cumsum(0) < rank).sum(dtype=torch.float64)
-    stats = torch.stack([
-        cells.second_moment.sum(dtype=torch.float64),
-        displacement.max().double(),
-        failed_cells.sum(dtype=torch.float64),
-        needed,
-    ]).tolist()
-    return stats[0], stats[1], int(stats[2]), int(stats[3])
+    needed = int(np.searchsorted(np.cumsum(read[2:]), rank))  # first bin whose cumulative count reaches rank
+    failed = 0
+    if not math.isfinite(energy):
+        failed_cells = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+        failed = int(failed_cells.sum())
+        moved = torch.where(failed_cells.unsqueeze(1), current, moved)
+        max_displacement = float(displacement.masked_fill(failed_cells, 0).max())
+    if not isinstance(inverse_diagonal, torch.Tensor):
+        max_displacement *= inverse_diagonal
+    return moved, energy, max_displacement, failed, needed
 
 
 def _adapted_k(neighbors_needed: int) -> int:
