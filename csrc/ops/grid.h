@@ -174,7 +174,9 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   const int64_t dims_at = size_at + aligned(num_batches * real_size);
   const int64_t offset_at = dims_at + aligned(3 * num_batches * 4);
   const int64_t total_bytes = offset_at + aligned(num_batches * 4);
-  at::Tensor params_host = at::empty({total_bytes}, at::kByte);
+  // Pinned when the grid lives on a GPU: the copy below then does not wait
+  // for the device (the host allocator keeps the buffer until it is done).
+  at::Tensor params_host = at::empty({total_bytes}, at::TensorOptions(at::kByte).pinned_memory(points.is_cuda()));
   unsigned char* params = params_host.data_ptr<unsigned char>();
   int64_t total_cells = 0;
   for (int64_t b = 0; b < num_batches; ++b) {
@@ -199,7 +201,7 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   }
 
   Grid grid;
-  const at::Tensor params_device = params_host.to(points.device());
+  const at::Tensor params_device = params_host.to(points.device(), /*non_blocking=*/true);
   const auto region = [&](int64_t at, int64_t count, at::ScalarType type) {
     return params_device.slice(0, at, at + count * at::elementSize(type)).view(type);
   };
