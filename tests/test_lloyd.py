@@ -54,6 +54,15 @@ def test_neighbors_needed_is_the_99th_percentile(device):
     assert history[0].neighbors_needed == int(needed[math.ceil(0.99 * 700) - 1])
 
 
+def test_neighbors_needed_from_a_strided_sample_beyond_the_sample_size(device, monkeypatch):
+    lloyd_module = sys.modules["torchvor.lloyd"]
+    monkeypatch.setattr(lloyd_module, "QUANTILE_SAMPLE", 100)
+    points = samples.white_noise(700, seed=6, dtype=torch.float64, device=device)
+    _, history = lloyd(points, UNIT_BOX, iters=1, k=20, return_history=True)
+    sample = torch.sort(torchvor.voronoi(points, UNIT_BOX, k=20).neighbors.cpu()[::7]).values
+    assert history[0].neighbors_needed == int(sample[math.ceil(0.99 * 100) - 1])
+
+
 def test_failed_cell_keeps_its_point(device, monkeypatch):
     """A cell that cannot be computed (NaN outputs and a failure status, as
     torchvor.voronoi leaves it) warns, keeps its point, and makes the energy NaN;
