@@ -67,6 +67,16 @@ TV_HD T squared_distance(Vec3<T> a, Vec3<T> b) {
   return (mul_rn(dx, dx) + mul_rn(dy, dy)) + mul_rn(dz, dz);
 }
 
+// *word |= bits from many threads at once. The word is read first, so the
+// threads that find their bits set already do not contend for it.
+TV_HD void set_bits(int32_t* word, int32_t bits) {
+#if defined(__CUDA_ARCH__)
+  if ((*reinterpret_cast<volatile int32_t*>(word) & bits) != bits) atomicOr(word, bits);
+#else
+  if ((__atomic_load_n(word, __ATOMIC_RELAXED) & bits) != bits) __atomic_fetch_or(word, bits, __ATOMIC_RELAXED);
+#endif
+}
+
 // A per-item scratch array whose element e lives at data[e * stride]. The CPU
 // gives each item a contiguous array (stride 1); the GPU interleaves the
 // arrays of a block's threads in shared memory (stride = block size), so a

@@ -65,8 +65,6 @@ struct ClipFunctor {
 
 // After a pass: which status codes its cells got (bit code - kNotComputed of
 // `seen`) and which cells failed, in one kernel; the host reads one word.
-// Each code's bit is set once: the word is read first, so the cells of a
-// common code do not all contend for it.
 struct StatusScanFunctor {
   const int8_t* status;   // by position
   const int32_t* cells;   // the pass's positions
@@ -76,12 +74,7 @@ struct StatusScanFunctor {
   TV_HD void operator()(int64_t i) const {
     const int8_t code = status[cells[i]];
     failed[i] = code != core::kSuccess && code != core::kDuplicate;
-    const int32_t bit = int32_t(1) << (code - core::kNotComputed);
-#if defined(__CUDA_ARCH__)
-    if ((*reinterpret_cast<volatile int32_t*>(seen) & bit) == 0) atomicOr(seen, bit);
-#else
-    if ((__atomic_load_n(seen, __ATOMIC_RELAXED) & bit) == 0) __atomic_fetch_or(seen, bit, __ATOMIC_RELAXED);
-#endif
+    core::set_bits(seen, int32_t(1) << (code - core::kNotComputed));
   }
 };
 

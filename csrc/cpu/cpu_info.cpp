@@ -1,13 +1,13 @@
-// torchvor::cpu_threads_used: how many threads CpuExec (the executor of every
-// CPU kernel) really runs on. A build without -fopenmp compiles
-// at::parallel_for to a serial loop without any warning; the tests compare
-// this with torch.get_num_threads().
-// torchvor::cpu_isa: the instruction set the clip loops run with (isa.h), for
-// the benchmarks' tables and the tests.
+// What the CPU backend really runs with, for the tests and the benchmarks:
+// - torchvor::cpu_threads_used: how many threads CpuExec (the executor of
+//   every CPU kernel) runs on. A build without -fopenmp compiles
+//   at::parallel_for to a serial loop without any warning; the tests compare
+//   this with torch.get_num_threads().
+// - torchvor::cpu_isa: the instruction set of the clip loop ("avx2+fma" or
+//   "baseline", isa.h).
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
-#include <atomic>
 #include <chrono>
 #include <mutex>
 #include <set>
