@@ -48,7 +48,8 @@ struct CpuExec {
 
   // functor(i, arena): `bytes` of working memory for item i (one lane),
   // reused by the next item of the same thread. (The kNN search runs here;
-  // an AVX2 copy of it measured no faster: 1M k=64, 170 ms either way.)
+  // an AVX2 copy of it measured no faster: 100K points, k=64, 165-170 ms
+  // either way.)
   template <typename Functor>
   static void for_each_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
