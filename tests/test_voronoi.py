@@ -736,6 +736,24 @@ def test_bad_values(device, dtype):
         torchvor.voronoi(points, UNIT, memory_budget=0)
 
 
+def test_bad_values_with_batch(device, dtype):
+    """With a batch, NaN/Inf points are caught by their own check; without one,
+    by the bounds (point_bounds). Both say "points", whichever element holds
+    them, also next to an empty batch element."""
+    points = torch.rand(40, 3, dtype=dtype, device=device)
+    batch = torch.tensor([0] * 20 + [2] * 20, device=device)  # element 1 is empty
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 3, dtype=dtype, device=device)
+    assert run(points, box, batch=batch).status.eq(CellStatus.SUCCESS).all()
+    for value in (float("nan"), float("inf"), -float("inf")):
+        for row in (3, 33):
+            bad = points.clone()
+            bad[row, 2] = value
+            with pytest.raises(ValueError, match="points contains NaN or Inf"):
+                torchvor.voronoi(bad, box, batch=batch)
+            with pytest.raises(ValueError, match="points contains NaN or Inf"):
+                torchvor.voronoi(bad, UNIT)
+
+
 def test_bad_shapes_and_types(device):
     points = torch.rand(30, 3, device=device)
     for shape in [(30, 2), (30,), (30, 3, 1), (90,)]:
