@@ -207,7 +207,10 @@ def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.
     # (its standard error is then ~0.05% of the cells): a histogram of 1M
     # counts took 0.1 ms of the GPU, the bins being few and contended.
     sample = cells.neighbors[::max(1, count // QUANTILE_SAMPLE)]
-    bins = 1024  # beyond any useful k; a cell that needed more counts as needing 1024
+    # histc leaves out cells that needed more than 1024 neighbours; they lie above
+    # any quantile the histogram reaches, and if more than 1% do, `needed` comes out
+    # as 1024 (above MAX_K) because the cumulative count never reaches the rank.
+    bins = 1024
     histogram = torch.histc(sample.to(torch.float64), bins=bins, min=0, max=bins)
     read = torch.cat([cells.second_moment.sum(dtype=torch.float64).view(1),
                       displacement.max().view(1).to(torch.float64), histogram]).cpu().numpy()
