@@ -31,6 +31,125 @@ struct alignas(16) CachedVertex {
   T radius2;
 };
 
+// The box [lo, hi] (relative to the seed): plane q of 6, and the corners
+// (plane ids packed as a | b << 8 | c << 16) of its dual triangle t of 8.
+// (No local arrays: indexed by a lane number they would go to local memory.)
+template <typename T>
+TV_HD Plane<T> box_plane(int q, Vec3<T> lo, Vec3<T> hi) {
+  const int axis = q >> 1;
+  const bool upper = (q & 1) != 0;  // the face at hi, facing -axis
+  const T sign = upper ? T(-1) : T(1);
+  const T low = axis == 0 ? lo.x : (axis == 1 ? lo.y : lo.z);
+  const T high = axis == 0 ? hi.x : (axis == 1 ? hi.y : hi.z);
+  return {{axis == 0 ? sign : T(0), axis == 1 ? sign : T(0), axis == 2 ? sign : T(0)},
+          upper ? high : -low};
+}
+TV_HD uint32_t box_triangle(int t) {
+  switch (t) {  // planes (a, b, c), one byte each, a lowest
+    case 0: return 0x000502u;
+    case 1: return 0x000305u;
+    case 2: return 0x020501u;
+    case 3: return 0x030105u;
+    case 4: return 0x000204u;
+    case 5: return 0x030004u;
+    case 6: return 0x010402u;
+    default: return 0x010304u;
+  }
+}
+
+// Intersection point of three planes (Cramer's rule).
+template <typename T>
+TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
+  const Vec3<T> bc = cross(pb.normal, pc.normal);
+  const Vec3<T> ca = cross(pc.normal, pa.normal);
+  const Vec3<T> ab = cross(pa.normal, pb.normal);
+  const T det = dot(pa.normal, bc);
+  const T scale = T(-1) / det;
+  return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
+}
+
+// The bisector of the seed (origin) and a neighbour at r (|r|^2 = r2), the
+// seed's side inside.
+template <typename T>
+TV_HD Plane<T> bisector_plane(Vec3<T> r, T r2) {
+  return {{-r.x, -r.y, -r.z}, T(0.5) * r2};
+}
+
+// Radius of security (paper §3.1): a neighbour farther than twice the cell's
+// radius cannot cut it, nor can any later (farther) neighbour.
+template <typename T>
+TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance) {
+  const T slack = T(1) + T(64) * tolerance;
+  return neighbor_dist2 > T(4) * slack * cell_radius2;
+}
+
+// Whether triangle `corners` (a, b, c) has the directed edge with code
+// from | to << 8: its edges (a, b), (b, c), (c, a).
+TV_HD bool has_edge(uint32_t corners, uint32_t code) {
+  return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
+         (((corners >> 16) | (corners & 0xffu) << 8) == code);
+}
+
+// Volume, first moment and second moment (integral of |x|^2) of a cell,
+// relative to the seed, summed over six signed tetrahedra per vertex (§3.5):
+// seed, foot of the seed on a plane, foot on an edge line, the vertex.
+// `unsigned_six_volume` sums the tetrahedra's absolute volumes: its ratio to
+// the volume measures the cancellation, hence the rounding error. The feet
+// of a face far from the seed can lie far outside it (a needle cell reaching
+// a box face): large tetrahedra then cancel (ratio 3e6 on a 1e-11 needle,
+// against at most ~7 on white noise).
+template <typename T>
+struct CellMoments {
+  T six_volume;           // 6 * volume
+  T unsigned_six_volume;  // 6 * sum of |tetrahedron volume|
+  Vec3<T> m1;             // 24 * first moment
+  T m2;                   // 120 * second moment
+
+  TV_HD static CellMoments zero() { return {T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
+
+  // The six tetrahedra of vertex v, where planes a, b, c (in the triangle's
+  // orientation) meet.
+  TV_HD void add_vertex(const Plane<T> (&planes)[3], Vec3<T> v) {
+    const Vec3<T> feet[3] = {plane_foot(planes[0]), plane_foot(planes[1]), plane_foot(planes[2])};
+    for (int e = 0; e < 3; ++e) {
+      const int f = (e + 1) % 3;
+      const Vec3<T> edge_foot = line_foot(planes[e], planes[f]);
+      add_tetrahedron(feet[e], edge_foot, v, T(1));
+      add_tetrahedron(feet[f], edge_foot, v, T(-1));
+    }
+  }
+
+  TV_HD void finish(T& volume, Vec3<T>& first_moment, T& second_moment, T& unsigned_volume) const {
+    volume = six_volume / T(6);
+    unsigned_volume = unsigned_six_volume / T(6);
+    first_moment = (T(1) / T(24)) * m1;
+    second_moment = m2 / T(120);
+  }
+
+  // Orthogonal projection of the seed (origin) onto a plane.
+  TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
+    return (-p.offset / dot(p.normal, p.normal)) * p.normal;
+  }
+
+  // Orthogonal projection of the seed onto the line where planes a, b meet.
+  TV_HD static Vec3<T> line_foot(const Plane<T>& pa, const Plane<T>& pb) {
+    const Vec3<T> direction = cross(pa.normal, pb.normal);
+    const T scale = T(-1) / dot(direction, direction);
+    return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
+  }
+
+  // Signed tetrahedron (seed, f, e, v). Integral of |x|^2 over a tetrahedron
+  // with a vertex at the origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2).
+  TV_HD void add_tetrahedron(Vec3<T> f, Vec3<T> e, Vec3<T> v, T sign) {
+    const T six_vol = sign * det3(f, e, v);
+    const Vec3<T> sum = f + e + v;
+    six_volume += six_vol;
+    unsigned_six_volume += six_vol < T(0) ? -six_vol : six_vol;
+    m1 = m1 + six_vol * sum;
+    m2 += six_vol * (dot(f, f) + dot(e, e) + dot(v, v) + dot(sum, sum));
+  }
+};
+
 // A small bit set (one bit per triangle slot, or per plane). Every word is
 // addressed with a compile-time index (unrolled loops, selects): on the GPU
 // the set stays in registers, where a dynamically indexed array would go to
@@ -80,6 +199,7 @@ struct BitSet {
 
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
 struct ConvexCell {
+  using Scalar = T;
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
@@ -102,19 +222,14 @@ struct ConvexCell {
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
-    plane[0] = {{T(1), T(0), T(0)}, -lo.x};
-    plane[1] = {{T(-1), T(0), T(0)}, hi.x};
-    plane[2] = {{T(0), T(1), T(0)}, -lo.y};
-    plane[3] = {{T(0), T(-1), T(0)}, hi.y};
-    plane[4] = {{T(0), T(0), T(1)}, -lo.z};
-    plane[5] = {{T(0), T(0), T(-1)}, hi.z};
+    for (int q = 0; q < 6; ++q) plane[q] = box_plane(q, lo, hi);
     num_planes = 6;
-    const uint8_t box[8][3] = {{2, 5, 0}, {5, 3, 0}, {1, 5, 2}, {5, 1, 3},
-                               {4, 2, 0}, {4, 0, 3}, {2, 4, 1}, {4, 3, 1}};
     num_triangles = 8;
     radius2_bound = T(0);
     for (int t = 0; t < 8; ++t) {
-      radius2_bound = max_of(radius2_bound, set_triangle(t, box[t][0], box[t][1], box[t][2]).radius2);
+      const uint32_t corners = box_triangle(t);
+      radius2_bound = max_of(radius2_bound, set_triangle(t, corner(corners, 0), corner(corners, 1),
+                                                         corner(corners, 2)).radius2);
     }
     radius_stale = false;
     tolerance = relative_tolerance;
@@ -122,23 +237,10 @@ struct ConvexCell {
     status = kSuccess;
   }
 
-  // Intersection point of three planes (Cramer's rule).
-  TV_HD Vec3<T> intersect(int a, int b, int c) const {
-    const Plane<T> pa = plane[a];
-    const Plane<T> pb = plane[b];
-    const Plane<T> pc = plane[c];
-    const Vec3<T> bc = cross(pb.normal, pc.normal);
-    const Vec3<T> ca = cross(pc.normal, pa.normal);
-    const Vec3<T> ab = cross(pa.normal, pb.normal);
-    const T det = dot(pa.normal, bc);
-    const T scale = T(-1) / det;
-    return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
-  }
-
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
   TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
     triangle[t] = pack(a, b, c);
-    const Vec3<T> position = intersect(a, b, c);
+    const Vec3<T> position = intersect_planes(plane[a], plane[b], plane[c]);
     const CachedVertex<T> v = {position, dot(position, position)};
     vertex[t] = v;
     return v;
@@ -157,12 +259,11 @@ struct ConvexCell {
     return radius2_bound;
   }
 
-  // Radius of security (paper §3.1): a neighbour farther than twice the cell's
-  // radius cannot cut it, nor can any later (farther) neighbour.
+  // Whether no neighbour this far (or farther) can cut the cell: the cheap
+  // running bound first, the exact radius only when that is not enough.
   TV_HD bool security_radius_reached(T neighbor_dist2) {
-    const T slack = T(1) + T(64) * tolerance;
-    if (neighbor_dist2 > T(4) * slack * radius2_bound) return true;  // cheap bound first
-    return radius_stale && neighbor_dist2 > T(4) * slack * radius2();
+    if (beyond_security_radius(neighbor_dist2, radius2_bound, tolerance)) return true;
+    return radius_stale && beyond_security_radius(neighbor_dist2, radius2(), tolerance);
   }
 
   // Clip by the bisector of the seed (origin) and a neighbour at `r` (paper
@@ -170,7 +271,7 @@ struct ConvexCell {
   // represented (array overflow) or the predicates were inconsistent.
   TV_HD bool clip_by_bisector(Vec3<T> r) {
     const T r2 = dot(r, r);
-    const Plane<T> p = {{-r.x, -r.y, -r.z}, T(0.5) * r2};
+    const Plane<T> p = bisector_plane(r, r2);
     // Vertices within the tolerance band of the plane are kept. If the removed
     // region is then not a disc (inconsistent predicates: vertices of nearly
     // parallel planes, computed with errors beyond the band), fail, or in the
@@ -214,36 +315,17 @@ struct ConvexCell {
   }
 
   // Volume, first moment and second moment (integral of |x|^2) of the cell,
-  // all relative to the seed, from six signed tetrahedra per vertex (§3.5):
-  // seed, foot of the seed on a plane, foot on an edge line, the vertex.
-  // `unsigned_volume` is the sum of the tetrahedra's absolute volumes: its
-  // ratio to `volume` measures the cancellation, hence the rounding error.
-  // The feet of a face far from the seed can lie far outside it (a needle
-  // cell reaching a box face): large tetrahedra then cancel (ratio 3e6 on a
-  // 1e-11 needle, against at most ~7 on white noise).
+  // all relative to the seed, and the cancellation measure (CellMoments).
   TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
                        T& unsigned_volume) const {
-    T six_volume = T(0);
-    T unsigned_six_volume = T(0);
-    Vec3<T> m1 = {T(0), T(0), T(0)};
-    T m2 = T(0);
+    CellMoments<T> moments = CellMoments<T>::zero();
     for (int t = 0; t < num_triangles; ++t) {
-      const Vec3<T> v = vertex[t].position;
       const uint32_t corners = triangle[t];
       const Plane<T> planes[3] = {plane[corner(corners, 0)], plane[corner(corners, 1)],
                                   plane[corner(corners, 2)]};
-      const Vec3<T> feet[3] = {plane_foot(planes[0]), plane_foot(planes[1]), plane_foot(planes[2])};
-      for (int e = 0; e < 3; ++e) {
-        const int f = (e + 1) % 3;
-        const Vec3<T> edge_foot = line_foot(planes[e], planes[f]);
-        add_tetrahedron(feet[e], edge_foot, v, T(1), six_volume, unsigned_six_volume, m1, m2);
-        add_tetrahedron(feet[f], edge_foot, v, T(-1), six_volume, unsigned_six_volume, m1, m2);
-      }
+      moments.add_vertex(planes, vertex[t].position);
     }
-    volume = six_volume / T(6);
-    unsigned_volume = unsigned_six_volume / T(6);
-    first_moment = (T(1) / T(24)) * m1;
-    second_moment = m2 / T(120);
+    moments.finish(volume, first_moment, second_moment, unsigned_volume);
   }
 
  private:
@@ -288,13 +370,6 @@ struct ConvexCell {
       --last;
     }
     num_triangles = last + 1;
-  }
-
-  // Whether triangle `corners` (a, b, c) has the directed edge with code
-  // from | to << 8: its edges (a, b), (b, c), (c, a).
-  TV_HD static bool has_edge(uint32_t corners, uint32_t code) {
-    return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
-           (((corners >> 16) | (corners & 0xffu) << 8) == code);
   }
 
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
@@ -365,31 +440,6 @@ struct ConvexCell {
                          renumber[corner(corners, 2)]);
     }
     num_planes = live;
-  }
-
-  // Orthogonal projection of the seed (origin) onto plane a.
-  TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
-    return (-p.offset / dot(p.normal, p.normal)) * p.normal;
-  }
-
-  // Orthogonal projection of the seed onto the line where planes a, b meet.
-  TV_HD static Vec3<T> line_foot(const Plane<T>& pa, const Plane<T>& pb) {
-    const Vec3<T> direction = cross(pa.normal, pb.normal);
-    const T scale = T(-1) / dot(direction, direction);
-    return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
-  }
-
-  // Signed tetrahedron (seed, f, e, v): accumulate 6 * volume, 24 * first
-  // moment and 120 * second moment (integral of |x|^2 over a tetrahedron with
-  // a vertex at the origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2)).
-  TV_HD static void add_tetrahedron(Vec3<T> f, Vec3<T> e, Vec3<T> v, T sign, T& six_volume,
-                                    T& unsigned_six_volume, Vec3<T>& m1, T& m2) {
-    const T six_vol = sign * det3(f, e, v);
-    const Vec3<T> sum = f + e + v;
-    six_volume += six_vol;
-    unsigned_six_volume += six_vol < T(0) ? -six_vol : six_vol;
-    m1 = m1 + six_vol * sum;
-    m2 += six_vol * (dot(f, f) + dot(e, e) + dot(v, v) + dot(sum, sum));
   }
 };
 
