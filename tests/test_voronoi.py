@@ -147,6 +147,16 @@ def check_global(cells, points, boxes, dtype, batch=None):
             f"{(box_volume * centre).tolist()}")
 
 
+@pytest.fixture(params=["thread", "cooperative"])
+def cells_impl(request, monkeypatch):
+    """Which implementation clips the cells (TORCHVOR_CELLS): one thread per
+    cell (ConvexCell, the CPU's default) or a group of lanes per cell
+    (CooperativeCell: a warp on CUDA, its default; one lane on the CPU). The
+    tests that take this fixture run both on every device."""
+    monkeypatch.setenv("TORCHVOR_CELLS", request.param)
+    return request.param
+
+
 def run(points, box=None, **kwargs):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a RuntimeWarning (failed cell) fails the test
@@ -157,7 +167,7 @@ def run(points, box=None, **kwargs):
 
 
 @pytest.mark.parametrize("kind", ["white", "clustered"])
-def test_random_vs_oracle(device, dtype, gen, seed, kind):
+def test_random_vs_oracle(device, dtype, gen, seed, kind, cells_impl):
     if kind == "white":
         points = rand(1000, gen, dtype, device)
     else:
@@ -169,6 +179,40 @@ def test_random_vs_oracle(device, dtype, gen, seed, kind):
         check_global(cells, points, [lohi], dtype)
         check_against_oracle(cells, points, lohi, pick_cells(points, 60, gen, *lohi), RTOL[dtype],
                              tag=f"box={box}")
+
+
+@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "duplicates", "small_k"])
+def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, seed, kind):
+    """The two implementations of a cell (one thread, or a group of lanes:
+    csrc/core/cooperative_cell.h) take the same decisions: the same statuses
+    and neighbour counts, the same integrals up to rounding (the lanes sum
+    the tetrahedra in another order)."""
+    k = None
+    if kind == "white":
+        points = rand(3000, gen, dtype, device)
+    elif kind == "clustered":
+        points = samples.clustered(3000, seed=seed, dtype=dtype).to(device)
+    elif kind == "lattice":
+        points = samples.lattice(10, dtype=dtype).to(device)
+    elif kind == "duplicates":
+        points = rand(1000, gen, dtype, device)
+        points = torch.cat([points, points[:300]])
+    else:
+        points = rand(3000, gen, dtype, device)
+        k = 4  # every cell retried: the later passes too
+    results = {}
+    for impl in ("thread", "cooperative"):
+        monkeypatch.setenv("TORCHVOR_CELLS", impl)
+        results[impl] = torchvor.voronoi(points, UNIT, k=k)
+    thread, coop = results["thread"], results["cooperative"]
+    check_global(coop, points, [box_of(points, UNIT)], dtype)
+    assert torch.equal(thread.status, coop.status)
+    assert torch.equal(thread.neighbors, coop.neighbors)
+    rtol = RTOL[dtype]
+    size = float(thread.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(coop.volume, thread.volume, rtol=rtol, atol=rtol * size ** 3)
+    torch.testing.assert_close(coop.second_moment, thread.second_moment, rtol=rtol, atol=rtol * size ** 5)
+    torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
 
 
 @pytest.mark.parametrize("kind", ["white", "clustered"])
@@ -245,7 +289,7 @@ def lattice_expectations(cells, points, edge, dtype, rtol):
 
 
 @pytest.mark.parametrize("m", [3, 7, 10])
-def test_lattice_exact(device, dtype, m):
+def test_lattice_exact(device, dtype, m, cells_impl):
     """samples.lattice(m): every cell is a cube of volume 1/m^3 centred on its point."""
     points = samples.lattice(m, dtype=dtype).to(device)
     cells = run(points, UNIT)
@@ -267,7 +311,7 @@ def test_lattice_scaled_offset_float64(device, gen):
     check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), 1e-10)
 
 
-def test_lattice_flat_box(device, dtype):
+def test_lattice_flat_box(device, dtype, cells_impl):
     """Lattice squeezed into a 1 x 1 x 0.001 box: flat cells of 1/m x 1/m x 0.001/m."""
     m = 6
     scale = torch.tensor([1.0, 1.0, 1e-3], dtype=torch.float64)
@@ -295,7 +339,7 @@ def test_lattice_single_layer(device, dtype):
 
 
 @pytest.mark.parametrize("spread", [1e-3, 1e-5, 1e-6])
-def test_tight_clusters(device, dtype, gen, spread):
+def test_tight_clusters(device, dtype, gen, spread, cells_impl):
     """Clusters of 40 points with Gaussian spread 1e-3 .. 1e-6 (far above the
     float64 resolution; 1e-6 is ~16 float32 ulps). The clusters' outer cells are
     needles (~1e-5 wide, ~0.1 long) whose faces float32 fixes only to about
@@ -311,7 +355,7 @@ def test_tight_clusters(device, dtype, gen, spread):
                          conditioning=256.0 if dtype == torch.float32 else 0.0)
 
 
-def test_isolated_point_and_tight_cluster_regression(device):
+def test_isolated_point_and_tight_cluster_regression(device, cells_impl):
     """Minimal float64 case found by test_tight_clusters: a point 0.5 away from a
     cluster of 5 points spread over ~1e-6. Its cell is cut by 5 nearly identical
     bisectors; it came back BOUNDARY_ERROR (NaN) after every recovery pass."""
@@ -328,7 +372,7 @@ def test_isolated_point_and_tight_cluster_regression(device):
     check_against_oracle(cells, points, lohi, range(6), 1e-10)
 
 
-def test_needle_cell_exact_float64(device):
+def test_needle_cell_exact_float64(device, cells_impl):
     """Regression found by test_tight_clusters (seed 1047518939): cell 59 is a
     needle (~1e-5 wide, ~0.1 long, volume 1.5e-11) of a cluster point. The
     paper's tetrahedra (feet of the seed on far planes) cancel on it (their
@@ -351,7 +395,7 @@ def test_needle_cell_exact_float64(device):
     check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
 
 
-def test_ill_conditioned_float32_cell_recomputed_in_float64(device):
+def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
     """Found by scanning tight clusters (spread 1e-6, seed 25): cell 5's
     tetrahedra cancel beyond float32's resolution. Computed in float32 it came
     out 2.8e-4 off the float64 computation of the same (float32-rounded)
@@ -369,7 +413,7 @@ def test_ill_conditioned_float32_cell_recomputed_in_float64(device):
     assert cells.second_moment[5].item() == pytest.approx(reference.second_moment[5].item(), rel=1e-5, abs=0)
 
 
-def test_flat_box_random(device, dtype, gen):
+def test_flat_box_random(device, dtype, gen, cells_impl):
     lo, hi = [0.0, 0.0, 0.0], [1.0, 1.0, 1e-3]
     points = rand(600, gen, dtype, device, lo, hi)
     box = (lo, hi)
@@ -389,7 +433,7 @@ def test_nearly_planar_points(device, gen):
     check_against_oracle(cells, points, lohi, pick_cells(points, 50, gen, *lohi), 1e-10)
 
 
-def test_close_pairs(device, dtype, gen):
+def test_close_pairs(device, dtype, gen, cells_impl):
     """Points 1e-7 apart (float64) or a few ulps apart (float32)."""
     base = rand(300, gen, torch.float64, "cpu", 0.1, 0.9)
     direction = torch.nn.functional.normalize(torch.randn(20, 3, generator=gen, dtype=torch.float64), dim=1)
@@ -420,7 +464,7 @@ def test_points_on_box_boundary(device, dtype, gen):
 
 
 @pytest.mark.parametrize("n", [1, 2, 5])
-def test_few_points(device, dtype, gen, n):
+def test_few_points(device, dtype, gen, n, cells_impl):
     lo, hi = [-1.0, 0.0, 2.0], [1.0, 0.5, 5.0]
     points = rand(n, gen, dtype, device, lo, hi)
     cells = run(points, (lo, hi))
@@ -506,7 +550,7 @@ def test_large_offset_box(device, dtype, gen):
         check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype])
 
 
-def test_duplicates(device, dtype, gen):
+def test_duplicates(device, dtype, gen, cells_impl):
     """Exact copies: the lowest index keeps the whole cell; later copies are
     DUPLICATE with volume 0, centroid = the point and second moment 0."""
     base = rand(200, gen, dtype, "cpu")
@@ -560,7 +604,7 @@ def test_duplicate_neighbours_regression(device, dtype_):
     check_against_oracle(cells, points, lohi, range(5), RTOL[dtype_])
 
 
-def test_all_points_identical(device, dtype):
+def test_all_points_identical(device, dtype, cells_impl):
     points = torch.full((5, 3), 0.25, dtype=dtype, device=device)
     cells = run(points, UNIT)
     assert cells.status.tolist() == [CellStatus.SUCCESS] + [CellStatus.DUPLICATE] * 4
@@ -571,7 +615,7 @@ def test_all_points_identical(device, dtype):
 # ------------------------------------------------------------------------ batch
 
 
-def test_batch_per_cloud_boxes(device, dtype, gen):
+def test_batch_per_cloud_boxes(device, dtype, gen, cells_impl):
     sizes = [300, 1, 0, 150, 2]
     batch = ragged_batch(sizes, device)
     los = torch.tensor([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0], [0.0, 0.0, 0.0], [-2.0, 1.0, 0.0], [0.0, 0.0, 10.0]],
@@ -639,7 +683,7 @@ def test_batch_single_cloud_box_shapes(device, dtype, gen):
 # ------------------------------------------------------ recovery and chunking
 
 
-def test_small_k_recovery(device, dtype, gen):
+def test_small_k_recovery(device, dtype, gen, cells_impl):
     """k=4 is far too few for any cell: the retry passes must give the exact cells."""
     points = rand(800, gen, dtype, device)
     cells = run(points, UNIT, k=4)
@@ -660,7 +704,7 @@ def test_tiny_k(device, gen, k):
     check_global(cells, points, [box_of(points, UNIT)], torch.float64)
 
 
-def test_tiny_memory_budget(device, dtype, gen):
+def test_tiny_memory_budget(device, dtype, gen, cells_impl):
     """memory_budget=1 forces the smallest chunks (1024 cells): identical results."""
     points = rand(2600, gen, dtype, device)
     ref = run(points, UNIT)
@@ -817,7 +861,7 @@ def sphere_around_centre(n, dtype, device):
     return torch.cat([torch.full((1, 3), 0.5, dtype=torch.float64), 0.5 + 0.3 * s]).to(dtype).to(device)
 
 
-def test_failure_reporting(device, dtype, gen):
+def test_failure_reporting(device, dtype, gen, cells_impl):
     """A cell that cannot be represented (400 facets) is reported, never silent:
     "raise" -> RuntimeError, "warn" -> RuntimeWarning, "flag" -> quiet; a failure
     status and NaN outputs for that cell, exact results for the others."""

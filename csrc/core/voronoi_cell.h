@@ -2,6 +2,7 @@
 #pragma once
 
 #include "convex_cell.h"
+#include "cooperative_cell.h"
 
 namespace torchvor {
 namespace core {
@@ -30,12 +31,12 @@ struct CellIntegrals {
 // `neighbors` lists k indices (the n-th at neighbors[n * stride]) sorted by
 // distance to the seed, padded with -1 when the batch element has fewer points. Coordinates are read as io_t
 // and computed in T (T may be wider, for the float64 recovery pass).
-template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename io_t>
-TV_HD CellIntegrals<T> compute_cell(ConvexCell<T, MAX_PLANES, MAX_TRIANGLES>& cell,
-                                    const io_t* points, int32_t seed_index,
+// `Cell` is a ConvexCell (one thread) or a CooperativeCell (a group of lanes,
+// each of which runs this function with the same arguments).
+template <typename Cell, typename io_t, typename T = typename Cell::Scalar>
+TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed_index,
                                     const int32_t* neighbors, int64_t stride, int32_t k,
-                                    const io_t* box,
-                                    T relative_tolerance, int band_widenings) {
+                                    const io_t* box, T relative_tolerance, int band_widenings) {
   const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
                         T(points[3 * seed_index + 2])};
   const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};

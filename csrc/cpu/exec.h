@@ -5,9 +5,11 @@
 #include <ATen/Parallel.h>
 
 #include <cstddef>
+#include <memory>
 #include <vector>
 
 #include "../core/common.h"
+#include "../core/lanes.h"
 #include "isa.h"
 #include "large_buffers.h"
 
@@ -17,6 +19,9 @@ namespace cpu {
 struct CpuExec {
   // A cell reads its neighbour list in one cache line or two: row-major.
   static constexpr bool kColumnMajorNeighbors = false;
+  // One thread per cell (ConvexCell): a cooperative cell has nothing to
+  // share its work with here (for_each_cooperative exists for the tests).
+  static bool cooperative_cells(int64_t /*cells*/) { return false; }
 
   // Small grains: the work per index varies a lot (cells near the box,
   // recovery passes), and the grid-ordered indices keep locality anyway.
@@ -43,6 +48,16 @@ struct CpuExec {
     const Isa isa = cpu_isa();
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       run_range(isa, begin, end, functor);
+    });
+  }
+
+  // functor(i, lanes, arrays) with a group of one lane (core::SingleLane) and
+  // one Arrays per thread, reused from item to item.
+  template <typename Arrays, typename Functor>
+  static void for_each_cooperative(int64_t n, const Functor& functor) {
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+      const auto arrays = std::make_unique<Arrays>();
+      for (int64_t i = begin; i < end; ++i) functor(i, core::SingleLane{}, *arrays);
     });
   }
 

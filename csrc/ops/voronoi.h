@@ -11,6 +11,8 @@
 #include <ATen/ATen.h>
 
 #include <algorithm>
+#include <cstdlib>
+#include <cstring>
 #include <tuple>
 #include <type_traits>
 #include <vector>
@@ -24,9 +26,24 @@
 namespace torchvor {
 namespace ops {
 
+// Which cell implementation clips: one thread per cell (ConvexCell) or a
+// group of lanes per cell (CooperativeCell). The backend chooses by the
+// number of cells in the pass (Exec::cooperative_cells); TORCHVOR_CELLS=thread
+// or =cooperative (read on every call) overrides that for every pass: the
+// tests run both on each device, and A/B timings need no second build.
+inline bool use_cooperative_cells(bool backend_default) {
+  const char* forced = std::getenv("TORCHVOR_CELLS");
+  if (forced != nullptr && std::strcmp(forced, "cooperative") == 0) return true;
+  if (forced != nullptr && std::strcmp(forced, "thread") == 0) return false;
+  return backend_default;
+}
+
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
 template <typename io_t, typename T, int MAX_PLANES>
 struct ClipFunctor {
+  static constexpr int kMaxTriangles = 2 * MAX_PLANES;
+  using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
+
   const io_t* points;          // (N, 3)
   const io_t* box;             // (B, 2, 3)
   const int64_t* batch;        // (N,) or nullptr
@@ -44,15 +61,32 @@ struct ClipFunctor {
   int8_t* status;              // (N,)
   int32_t* num_neighbors;      // (N,)
 
+  // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
+    core::ConvexCell<T, MAX_PLANES, kMaxTriangles> cell;
+    write(t, compute(cell, t));
+  }
+
+  // A group of lanes computes cell t together, its arrays in `arrays`.
+  template <typename Lanes>
+  TV_HD void operator()(int64_t t, Lanes lanes, Arrays& arrays) const {
+    core::CooperativeCell<T, MAX_PLANES, kMaxTriangles, Lanes> cell(arrays, lanes);
+    const core::CellIntegrals<T> out = compute(cell, t);
+    if (lanes.index() == 0) write(t, out);
+  }
+
+  template <typename Cell>
+  TV_HD core::CellIntegrals<T> compute(Cell& cell, int64_t t) const {
     const int32_t cell_id = cells[t];
     const int64_t b = batch ? batch[cell_id] : 0;
-    core::ConvexCell<T, MAX_PLANES, 2 * MAX_PLANES> cell;
-    const core::CellIntegrals<T> out = core::compute_cell(
-        cell, points, cell_id, neighbors + (neighbors_column_major ? t : t * int64_t(k)),
-        neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b, tolerance,
-        band_widenings);
-    const int64_t i = rows_by_step ? t : cell_id;
+    return core::compute_cell(cell, points, cell_id,
+                              neighbors + (neighbors_column_major ? t : t * int64_t(k)),
+                              neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b,
+                              tolerance, band_widenings);
+  }
+
+  TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
+    const int64_t i = rows_by_step ? t : cells[t];
     volume[i] = static_cast<io_t>(out.volume);
     centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
     centroid[3 * int64_t(i) + 1] = static_cast<io_t>(out.centroid.y);
@@ -205,9 +239,13 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
-  // Double-double's products must round separately (Dekker's split).
+  // Double-double's products must round separately (Dekker's split); it
+  // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor);
+  } else if (use_cooperative_cells(Exec::cooperative_cells(cells.size(0)))) {
+    Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
+                                                                                          functor);
   } else {
     Exec::for_each_fma(cells.size(0), functor);
   }
