@@ -11,11 +11,16 @@ cell succeeds in the first pass, so the kernel time is that of one pass.
 """
 import argparse
 import os
+import sys
+from pathlib import Path
 
 import torch
-import torchvor
-import torchvor.samples
 from torch.profiler import ProfilerActivity, profile
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import common  # noqa: E402
+import torchvor  # noqa: E402
+import torchvor.samples  # noqa: E402
 
 SIZES = [64, 256, 1024, 4096, 16384, 65536, 262144, 1048576]
 
@@ -36,8 +41,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--k", type=int, default=48)
     args = parser.parse_args()
-    print(f"| cells | thread (ms) | cooperative (ms) | ratio |  (k={args.k}, "
-          f"{torch.cuda.get_device_name()})")
+    if not torch.cuda.is_available():
+        sys.exit("cells_crossover.py needs CUDA")
+    common.print_header(torch.device("cuda"))
+    print(f"\n### Clip kernel time against pass size (k={args.k}, jittered grid)")
+    print("| cells | thread (ms) | cooperative (ms) | ratio |")
     print("|---|---|---|---|")
     for n in SIZES:
         points = torchvor.samples.jittered_grid(n, device="cuda", seed=1)
