@@ -91,11 +91,7 @@ struct CooperativeCell {
   TV_HD T radius2() {
     if (radius_stale) {
       T largest = T(0);
-      TV_UNROLL
-      for (int j = 0; j < kRounds; ++j) {
-        const int t = j * kLanes + lanes.index();
-        if (t < num_triangles) largest = max_of(largest, a.vertex[t].radius2);
-      }
+      for_own_slots([&](int t) { largest = max_of(largest, a.vertex[t].radius2); });
       radius2_bound = lanes.max(largest);
       radius_stale = false;
     }
@@ -156,16 +152,12 @@ struct CooperativeCell {
   TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
                        T& unsigned_volume) const {
     CellMoments<T> moments = CellMoments<T>::zero();
-    TV_UNROLL
-    for (int j = 0; j < kRounds; ++j) {
-      const int t = j * kLanes + lanes.index();
-      if (t < num_triangles) {
-        const uint32_t corners = a.triangle[t];
-        const Plane<T> planes[3] = {a.plane[corner(corners, 0)], a.plane[corner(corners, 1)],
-                                    a.plane[corner(corners, 2)]};
-        moments.add_vertex(planes, a.vertex[t].position);
-      }
-    }
+    for_own_slots([&](int t) {
+      const uint32_t corners = a.triangle[t];
+      const Plane<T> planes[3] = {a.plane[corner(corners, 0)], a.plane[corner(corners, 1)],
+                                  a.plane[corner(corners, 2)]};
+      moments.add_vertex(planes, a.vertex[t].position);
+    });
     moments.six_volume = lanes.sum(moments.six_volume);
     moments.unsigned_six_volume = lanes.sum(moments.unsigned_six_volume);
     moments.m1 = {lanes.sum(moments.m1.x), lanes.sum(moments.m1.y), lanes.sum(moments.m1.z)};
@@ -174,6 +166,16 @@ struct CooperativeCell {
   }
 
  private:
+  // body(t) for each live slot t of this lane (t < num_triangles).
+  template <typename Body>
+  TV_HD void for_own_slots(Body&& body) const {
+    TV_UNROLL
+    for (int j = 0; j < kRounds; ++j) {
+      const int t = j * kLanes + lanes.index();
+      if (t < num_triangles) body(t);
+    }
+  }
+
   TV_HD bool fail(int8_t code) {
     status = code;
     return false;
@@ -309,15 +311,11 @@ struct CooperativeCell {
     const uint32_t below = lanes.below();
     for (int q = lane; q < num_planes; q += kLanes) a.renumber[q] = kNone;
     lanes.sync();
-    TV_UNROLL
-    for (int j = 0; j < kRounds; ++j) {
-      const int t = j * kLanes + lane;
-      if (t < num_triangles) {
-        const uint32_t corners = a.triangle[t];
-        TV_UNROLL
-        for (int e = 0; e < 3; ++e) a.renumber[corner(corners, e)] = 0;  // same value from any lane
-      }
-    }
+    for_own_slots([&](int t) {
+      const uint32_t corners = a.triangle[t];
+      TV_UNROLL
+      for (int e = 0; e < 3; ++e) a.renumber[corner(corners, e)] = 0;  // same value from any lane
+    });
     lanes.sync();
     Plane<T> kept[kPlaneRounds];
     int new_id[kPlaneRounds];
@@ -340,15 +338,11 @@ struct CooperativeCell {
       }
     }
     lanes.sync();
-    TV_UNROLL
-    for (int j = 0; j < kRounds; ++j) {
-      const int t = j * kLanes + lane;
-      if (t < num_triangles) {
-        const uint32_t corners = a.triangle[t];
-        a.triangle[t] = pack(a.renumber[corner(corners, 0)], a.renumber[corner(corners, 1)],
-                             a.renumber[corner(corners, 2)]);
-      }
-    }
+    for_own_slots([&](int t) {
+      const uint32_t corners = a.triangle[t];
+      a.triangle[t] = pack(a.renumber[corner(corners, 0)], a.renumber[corner(corners, 1)],
+                           a.renumber[corner(corners, 2)]);
+    });
     lanes.sync();
     num_planes = live;
   }
