@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|cells|bench|sweep|profile|sanitize|ncu]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|bench|sweep|profile|sanitize|ncu]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -22,12 +22,14 @@ for step in "${@:-smoke}"; do
     smoke) python3 benchmarks/gpu_smoke.py --sizes 100000,1000000,10000000 2>&1 | tee "$OUT/smoke.log" || status=1 ;;
     tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -15 || status=1 ;;
     cudatests) python3 -m pytest -q -p no:cacheprovider -k cuda tests 2>&1 | tee "$OUT/cudatests.log" | grep -E "passed|failed|Error|assert" | tail -30 || status=1 ;;
-    cells)  # the cell implementations of one build (TORCHVOR_CELLS): by pass size, against one only
-      python3 benchmarks/cells_crossover.py 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
+    lanes)  # thread or warp per item, one build: crossover tables (TORCHVOR_CELLS, TORCHVOR_KNN),
+            # then ROUNDS rounds of ab_time.py under each setting of AB ("default" = no variable)
+      python3 benchmarks/crossover.py 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
       for round in $(seq ${ROUNDS:-2}); do
-        for impl in default thread cooperative; do
-          TORCHVOR_CELLS=$impl python3 benchmarks/ab_time.py "$impl" 2>&1 \
-            | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/cells.log"
+        for setting in ${AB:-default TORCHVOR_KNN=thread}; do
+          if [ "$setting" = default ]; then assign=(); else assign=("$setting"); fi
+          env "${assign[@]}" python3 benchmarks/ab_time.py "$setting" 2>&1 \
+            | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/lanes.log"
         done
       done ;;
     bench)

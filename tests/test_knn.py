@@ -50,17 +50,27 @@ def assert_exact(result, ref):
     np.testing.assert_array_equal(got_d, ref_d)
 
 
+@pytest.fixture(params=["thread", "cooperative"])
+def knn_impl(request, monkeypatch):
+    """Which implementation searches (TORCHVOR_KNN): one thread per query (the
+    CPU's default, and CUDA's for large passes) or a group of lanes per query
+    (a warp on CUDA, its default for small passes; one lane on the CPU). The
+    tests that take this fixture run both on every device."""
+    monkeypatch.setenv("TORCHVOR_KNN", request.param)
+    return request.param
+
+
 # ----------------------------------------------------------------- correctness
 
 
 @pytest.mark.parametrize("k", [1, 8, 33])
-def test_uniform(device, dtype, gen, k):
+def test_uniform(device, dtype, gen, k, knn_impl):
     points = rand(1500, gen, dtype, device)
     knn_and_check(points, k)
 
 
 @pytest.mark.parametrize("k", [1, 16])
-def test_clustered(device, dtype, seed, k):
+def test_clustered(device, dtype, seed, k, knn_impl):
     points = samples.clustered(1500, clusters=7, spread=0.01, seed=seed, dtype=dtype).to(device)
     knn_and_check(points, k)
     queries = samples.clustered(700, clusters=5, spread=0.05, seed=seed + 1, dtype=dtype).to(device)
@@ -68,7 +78,7 @@ def test_clustered(device, dtype, seed, k):
 
 
 @pytest.mark.parametrize("k", [1, 5, 40])
-def test_exact_ties_integer_grid(device, dtype, gen, k):
+def test_exact_ties_integer_grid(device, dtype, gen, k, knn_impl):
     """Small integer coordinates: every distance is exact in float32 and float64,
     ties are everywhere, and the (distance, lower index) order is unique."""
     points = torch.randint(0, 4, (400, 3), generator=gen).to(dtype).to(device)
@@ -79,7 +89,7 @@ def test_exact_ties_integer_grid(device, dtype, gen, k):
     assert_exact(torchvor.knn(points, k, queries), exact_knn_with_ties(points, k, queries))
 
 
-def test_many_exact_duplicates(device, dtype, gen):
+def test_many_exact_duplicates(device, dtype, gen, knn_impl):
     """30 copies each of 20 random points, shuffled: ties broken by the lower
     index, and a point's copies (not itself) come first at distance 0."""
     base = rand(20, gen, dtype, device)
@@ -104,7 +114,7 @@ def test_many_exact_duplicates(device, dtype, gen):
         assert torch.equal(result.idx[i, :30], copies)
 
 
-def test_duplicates_exact_oracle(device, dtype, gen):
+def test_duplicates_exact_oracle(device, dtype, gen, knn_impl):
     """Random points each repeated a random number of times: compared index for
     index with the brute force (ties between exact copies have one answer; other
     distances are distinct with probability 1 but compared tie-aware anyway)."""
@@ -122,7 +132,7 @@ def test_duplicates_exact_oracle(device, dtype, gen):
 
 
 @pytest.mark.parametrize("n,k", [(1, 1), (1, 4), (3, 5), (6, 6), (7, 6)])
-def test_fewer_points_than_k(device, dtype, gen, n, k):
+def test_fewer_points_than_k(device, dtype, gen, n, k, knn_impl):
     points = rand(n, gen, dtype, device)
     result = knn_and_check(points, k)
     assert (result.idx >= 0).sum(1).tolist() == [min(k, n - 1)] * n
@@ -140,7 +150,7 @@ def test_k1_is_nearest(device, dtype, gen):
 
 
 @pytest.mark.parametrize("k", [16, 17, 110, 111, 221, 222, 443, 444, 455, 909, 1100])
-def test_k_across_scratch_layouts(device, dtype, gen, k):
+def test_k_across_scratch_layouts(device, dtype, gen, k, knn_impl):
     """k on both sides of every change of the GPU launch: the heap (8 bytes a slot
     in float32, 16 in float64) lives in shared memory with 128, 64 or 32 threads a
     block, and in global memory beyond 227 KB a block (k > 908 in float32, k > 454 in
@@ -151,7 +161,7 @@ def test_k_across_scratch_layouts(device, dtype, gen, k):
     assert_exact(torchvor.knn(grid, k), exact_knn_with_ties(grid, k))
 
 
-def test_large_k(device, dtype, gen):
+def test_large_k(device, dtype, gen, knn_impl):
     points = rand(1000, gen, dtype, device)
     result = knn_and_check(points, 300)
     assert (result.idx >= 0).all()
@@ -159,10 +169,14 @@ def test_large_k(device, dtype, gen):
     knn_and_check(points[:400], 399)
     result = knn_and_check(points[:400], 400)
     assert (result.idx[:, -1] == -1).all() and (result.idx[:, :-1] >= 0).all()
+    # a heap too large for a warp's shared memory on CUDA (48 KB): the
+    # cooperative search falls back to a thread per query there
+    many = rand(6300, gen, dtype, device)
+    knn_and_check(many, 6200, rand(20, gen, dtype, device))
 
 
 @pytest.mark.parametrize("offset", [1e4, -3e4])
-def test_large_offset(device, dtype, gen, offset):
+def test_large_offset(device, dtype, gen, offset, knn_impl):
     """Points near 1e4 with spread 1: float32 keeps ~1e-3 absolute resolution;
     compared with the float64 brute force of the same (rounded) inputs."""
     points = rand(2000, gen, dtype, device, offset, offset + 1)
@@ -171,7 +185,7 @@ def test_large_offset(device, dtype, gen, offset):
     knn_and_check(points, 10, queries)
 
 
-def test_anisotropic_and_flat(device, dtype, gen):
+def test_anisotropic_and_flat(device, dtype, gen, knn_impl):
     """Extents that differ by orders of magnitude; a plane; a line; one point."""
     points = rand(1500, gen, dtype, device) * torch.tensor([1.0, 1e-3, 10.0], dtype=dtype, device=device)
     knn_and_check(points, 12)
@@ -188,7 +202,7 @@ def test_anisotropic_and_flat(device, dtype, gen):
     assert result.idx.cpu().tolist() == expected
 
 
-def test_separate_queries(device, dtype, gen):
+def test_separate_queries(device, dtype, gen, knn_impl):
     points = rand(1200, gen, dtype, device)
     queries = torch.cat([
         rand(500, gen, dtype, device),                       # inside
@@ -240,6 +254,35 @@ def test_non_contiguous_inputs(device, dtype, gen):
     check_knn_result(result.dist2, result.idx, points, 7, queries, batch=batch, query_batch=qbatch)
 
 
+@pytest.mark.parametrize("kind", ["uniform", "clustered", "integer", "batch"])
+def test_cooperative_knn_matches_thread_knn(monkeypatch, device, dtype, gen, seed, kind):
+    """The two implementations of the search (one thread, or a group of lanes
+    per query: csrc/core/grid_search.h) offer the same candidates to the same
+    keys: equal results, bit for bit."""
+    batch = query_batch = None
+    if kind == "uniform":
+        points, queries = rand(3000, gen, dtype, device), rand(500, gen, dtype, device, -0.5, 1.5)
+    elif kind == "clustered":
+        points = samples.clustered(3000, clusters=6, spread=0.01, seed=seed, dtype=dtype).to(device)
+        queries = samples.clustered(500, clusters=4, spread=0.05, seed=seed + 1, dtype=dtype).to(device)
+    elif kind == "integer":  # exact ties everywhere
+        points = torch.randint(0, 6, (800, 3), generator=gen).to(dtype).to(device)
+        queries = torch.randint(-1, 7, (300, 3), generator=gen).to(dtype).to(device)
+    else:
+        batch = ragged_batch([700, 0, 5, 900], device)
+        query_batch = ragged_batch([100, 20, 30, 150], device)
+        points, queries = rand(1605, gen, dtype, device), rand(300, gen, dtype, device)
+    for k in (1, 7, 40):
+        for args in ((points, k), (points, k, queries)):
+            kwargs = {"batch": batch} if len(args) == 2 else {"batch": batch, "query_batch": query_batch}
+            results = {}
+            for impl in ("thread", "cooperative"):
+                monkeypatch.setenv("TORCHVOR_KNN", impl)
+                results[impl] = torchvor.knn(*args, **kwargs)
+            assert torch.equal(results["thread"].idx, results["cooperative"].idx), (k, len(args))
+            assert torch.equal(results["thread"].dist2, results["cooperative"].dist2), (k, len(args))
+
+
 def test_deterministic(device, dtype, gen):
     points = samples.clustered(3000, seed=int(torch.randint(1 << 30, (1,), generator=gen)), dtype=dtype)
     points = points.to(device)
@@ -251,7 +294,7 @@ def test_deterministic(device, dtype, gen):
 # ----------------------------------------------------------------------- batch
 
 
-def test_ragged_batch(device, dtype, gen):
+def test_ragged_batch(device, dtype, gen, knn_impl):
     sizes = [1, 300, 2, 0, 450, 5, 120]  # one empty element (3) in the middle
     batch = ragged_batch(sizes, device)
     n = sum(sizes)
@@ -265,7 +308,7 @@ def test_ragged_batch(device, dtype, gen):
     assert result.idx[1 + 300].tolist() == [1 + 300 + 1, -1, -1, -1]
 
 
-def test_ragged_batch_queries(device, dtype, gen):
+def test_ragged_batch_queries(device, dtype, gen, knn_impl):
     sizes = [200, 3, 0, 250, 40]
     batch = ragged_batch(sizes, device)
     points = rand(sum(sizes), gen, dtype, device)
@@ -296,7 +339,7 @@ def test_batch_matches_separate_calls(device, dtype, gen):
         start += s
 
 
-def test_batch_exact_ties(device, dtype, gen):
+def test_batch_exact_ties(device, dtype, gen, knn_impl):
     sizes = [60, 1, 90, 0, 70]
     batch = ragged_batch(sizes, device)
     points = torch.randint(0, 3, (sum(sizes), 3), generator=gen).to(dtype).to(device)

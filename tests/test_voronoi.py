@@ -215,6 +215,20 @@ def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, s
     torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
 
 
+@pytest.mark.parametrize("k", [4, None])
+def test_cooperative_knn_in_voronoi(monkeypatch, device, dtype, gen, k):
+    """The passes' neighbour searches by a thread or a group of lanes per
+    query (TORCHVOR_KNN) find the same neighbours: equal cells, bit for bit.
+    k=4 retries every cell; k=None adds the pilot."""
+    points = rand(3000, gen, dtype, device)
+    results = {}
+    for impl in ("thread", "cooperative"):
+        monkeypatch.setenv("TORCHVOR_KNN", impl)
+        results[impl] = torchvor.voronoi(points, UNIT, k=k)
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        assert torch.equal(getattr(results["thread"], name), getattr(results["cooperative"], name)), name
+
+
 @pytest.mark.parametrize("kind", ["white", "clustered"])
 def test_cpu_baseline_loop_vs_oracle(monkeypatch, dtype, gen, seed, kind):
     """On CPUs with AVX2 and FMA the CPU clips cells with a copy of its loop

@@ -148,6 +148,24 @@ struct NeighborHeap {
     key[e] = item;
   }
 
+  // write_sorted by a group of lanes over a heap they share: each lane
+  // places its keys at their ranks (keys are distinct), so no lane sorts.
+  template <typename index_t, typename Lanes>
+  TV_HD void write_ranked(T* dist2_out, index_t* index_out, int64_t stride, T infinity,
+                          Lanes lanes) const {
+    for (int32_t e = lanes.index(); e < capacity; e += Lanes::kCount) {
+      int32_t at = e;
+      HeapKey<T> item = HeapKey<T>::make(infinity, -1);
+      if (e < size) {
+        item = key[e];
+        at = 0;
+        for (int32_t m = 0; m < size; ++m) at += int32_t(key[m] < item);
+      }
+      index_out[at * stride] = item.index();
+      if (dist2_out) dist2_out[at * stride] = item.dist2();
+    }
+  }
+
   // Write the keys in increasing order as (dist2, index), padded with
   // (inf, -1), element e at e * stride; `dist2_out` may be null. The heap is
   // consumed. Host: an AVX2 rank count for float keys (key_ranks.h), else
@@ -219,81 +237,191 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
   }
 }
 
+// Two ranges [begin, end) of sorted points (either may be empty).
+struct RowRanges {
+  int32_t begin[2], end[2];
+};
+
+// One query's ring search (Chebyshev shells of grid cells around its own
+// cell, in its batch element's grid): which points of a shell's row to
+// offer, and when to stop. The thread and the cooperative searches share it.
+template <typename T>
+struct Rings {
+  Vec3<T> query, origin;
+  T h;       // cell edge
+  T margin;  // points are assigned to cells by a rounded division: the ring
+             // bounds keep this margin so they never overestimate a distance
+  int32_t dim[3], cell[3], offset;
+
+  TV_HD Rings(const GridView<T>& grid, int64_t batch, Vec3<T> q)
+      : query(q), origin(load_vec3(grid.origin + 3 * batch)), h(grid.cell_size[batch]),
+        margin(h * T(1e-3)), offset(grid.cell_offset[batch]) {
+    TV_UNROLL
+    for (int a = 0; a < 3; ++a) dim[a] = grid.dims[3 * batch + a];
+    cell[0] = grid_coordinate(query.x, origin.x, h, dim[0]);
+    cell[1] = grid_coordinate(query.y, origin.y, h, dim[1]);
+    cell[2] = grid_coordinate(query.z, origin.z, h, dim[2]);
+  }
+
+  // Shell r's cells along axis a, clamped to the grid: [low(a, r), high(a, r)].
+  TV_HD int32_t low(int a, int32_t r) const { return max_of(cell[a] - r, 0); }
+  TV_HD int32_t high(int a, int32_t r) const { return min_of(cell[a] + r, dim[a] - 1); }
+
+  TV_HD T gap_z(int32_t z) const { return slab_gap(query.z, origin.z, h, z, margin); }
+
+  // The points of row (z, y) of shell r that may beat the heap's worst
+  // candidate (strictly: an equally far point with a lower index would still
+  // win): on a face of the shell, the row's cells within reach (contiguous
+  // in sorted order); inside it, the row's two end cells.
+  TV_HD RowRanges row(int32_t r, int32_t z, int32_t y, T gap_z, const int32_t* cell_start,
+                      const NeighborHeap<T>& heap) const {
+    RowRanges out = {{0, 0}, {0, 0}};
+    const T gap_y = slab_gap(query.y, origin.y, h, y, margin);
+    const T gap_yz2 = gap_z * gap_z + gap_y * gap_y;
+    if (heap.full() && gap_yz2 > heap.worst()) return out;
+    const int32_t row_start = offset + (z * dim[1] + y) * dim[0];
+    const int32_t cx = cell[0];
+    if (z == cell[2] - r || z == cell[2] + r || y == cell[1] - r || y == cell[1] + r) {
+      int32_t xa = low(0, r), xb = high(0, r);
+      if (heap.full()) {
+        const T reach = sqrt_of(heap.worst() - gap_yz2) + margin;
+        xa = max_of(xa, grid_coordinate(query.x - reach, origin.x, h, dim[0]));
+        xb = min_of(xb, grid_coordinate(query.x + reach, origin.x, h, dim[0]));
+      }
+      if (xa <= xb) {
+        out.begin[0] = cell_start[row_start + xa];
+        out.end[0] = cell_start[row_start + xb + 1];
+      }
+    } else {  // r >= 1: two distinct end cells
+      TV_UNROLL
+      for (int side = 0; side < 2; ++side) {
+        const int32_t x = side == 0 ? cx - r : cx + r;
+        if (x < 0 || x >= dim[0]) continue;
+        const T gap_x = slab_gap(query.x, origin.x, h, x, margin);
+        if (heap.full() && gap_x * gap_x + gap_yz2 > heap.worst()) continue;
+        out.begin[side] = cell_start[row_start + x];
+        out.end[side] = cell_start[row_start + x + 1];
+      }
+    }
+    return out;
+  }
+
+  // Whether shell r was the last one: no point outside its cube can enter
+  // the heap (or the cube covers the whole grid).
+  TV_HD bool exhausted(int32_t r, const NeighborHeap<T>& heap, T infinity) const {
+    const T q[3] = {query.x, query.y, query.z};
+    const T o[3] = {origin.x, origin.y, origin.z};
+    T bound = infinity;  // distance to the nearest cell outside the cube
+    bool covers_grid = true;
+    TV_UNROLL
+    for (int a = 0; a < 3; ++a) {
+      if (cell[a] - r > 0) {
+        covers_grid = false;
+        bound = min_of(bound, q[a] - (o[a] + T(cell[a] - r) * h));
+      }
+      if (cell[a] + r < dim[a] - 1) {
+        covers_grid = false;
+        bound = min_of(bound, (o[a] + T(cell[a] + r + 1) * h) - q[a]);
+      }
+    }
+    if (covers_grid) return true;
+    bound -= margin;
+    return heap.full() && bound > T(0) && heap.worst() < bound * bound;
+  }
+};
+
 // Fill `heap` with the k nearest points of batch element `batch` to `query`
 // (excluding the point whose original index is `excluded`, or none if -1).
+// One thread per query.
 template <typename T>
 TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int32_t excluded,
                       NeighborHeap<T>& heap, T infinity) {
   heap.size = 0;
-  const T h = grid.cell_size[batch];
-  const Vec3<T> origin = load_vec3(grid.origin + 3 * batch);
-  const int32_t dx = grid.dims[3 * batch], dy = grid.dims[3 * batch + 1], dz = grid.dims[3 * batch + 2];
-  const int32_t offset = grid.cell_offset[batch];
-  const int32_t cx = grid_coordinate(query.x, origin.x, h, dx);
-  const int32_t cy = grid_coordinate(query.y, origin.y, h, dy);
-  const int32_t cz = grid_coordinate(query.z, origin.z, h, dz);
-  // Points are assigned to cells by a rounded division: keep a margin so that
-  // the ring bound below never overestimates the distance to unvisited cells.
-  const T margin = h * T(1e-3);
-
+  const Rings<T> rings(grid, batch, query);
   for (int32_t r = 0;; ++r) {
-    const int32_t z0 = max_of(cz - r, 0), z1 = min_of(cz + r, dz - 1);
-    const int32_t y0 = max_of(cy - r, 0), y1 = min_of(cy + r, dy - 1);
-    const int32_t x0 = max_of(cx - r, 0), x1 = min_of(cx + r, dx - 1);
-    for (int32_t z = z0; z <= z1; ++z) {
-      // Once the heap is full, skip cells farther than its worst candidate
-      // (strictly: an equally far point with a lower index would still win).
-      const T gap_z = slab_gap(query.z, origin.z, h, z, margin);
+    for (int32_t z = rings.low(2, r); z <= rings.high(2, r); ++z) {
+      // A whole slab of rows beyond the worst candidate: skip it.
+      const T gap_z = rings.gap_z(z);
       if (heap.full() && gap_z * gap_z > heap.worst()) continue;
-      const bool z_face = (z == cz - r || z == cz + r);
-      for (int32_t y = y0; y <= y1; ++y) {
-        const T gap_y = slab_gap(query.y, origin.y, h, y, margin);
-        const T gap_yz2 = gap_z * gap_z + gap_y * gap_y;
-        if (heap.full() && gap_yz2 > heap.worst()) continue;
-        const int32_t row = offset + (z * dy + y) * dx;
-        if (z_face || y == cy - r || y == cy + r) {
-          // A full row of the shell (contiguous in sorted order), narrowed to
-          // the cells within reach of the worst candidate.
-          int32_t xa = x0, xb = x1;
-          if (heap.full()) {
-            const T reach = sqrt_of(heap.worst() - gap_yz2) + margin;
-            xa = max_of(xa, grid_coordinate(query.x - reach, origin.x, h, dx));
-            xb = min_of(xb, grid_coordinate(query.x + reach, origin.x, h, dx));
-          }
-          if (xa <= xb)
-            offer_range(grid, grid.cell_start[row + xa], grid.cell_start[row + xb + 1], query,
-                        excluded, heap);
-        } else {
-          for (int32_t x = cx - r; x <= cx + r; x += 2 * r) {
-            if (x < 0 || x >= dx) continue;
-            const T gap_x = slab_gap(query.x, origin.x, h, x, margin);
-            if (heap.full() && gap_x * gap_x + gap_yz2 > heap.worst()) continue;
-            offer_range(grid, grid.cell_start[row + x], grid.cell_start[row + x + 1], query,
-                        excluded, heap);
-          }
+      for (int32_t y = rings.low(1, r); y <= rings.high(1, r); ++y) {
+        const RowRanges ranges = rings.row(r, z, y, gap_z, grid.cell_start, heap);
+        TV_UNROLL
+        for (int i = 0; i < 2; ++i) {
+          if (ranges.begin[i] < ranges.end[i])
+            offer_range(grid, ranges.begin[i], ranges.end[i], query, excluded, heap);
         }
       }
     }
-    // Distance from the query to the nearest cell outside the visited cube.
-    T bound = infinity;
-    bool covers_grid = true;
-    const int32_t c[3] = {cx, cy, cz};
-    const int32_t dim[3] = {dx, dy, dz};
-    const T q[3] = {query.x, query.y, query.z};
-    const T o[3] = {origin.x, origin.y, origin.z};
-    for (int a = 0; a < 3; ++a) {
-      if (c[a] - r > 0) {
-        covers_grid = false;
-        bound = min_of(bound, q[a] - (o[a] + T(c[a] - r) * h));
+    if (rings.exhausted(r, heap, infinity)) break;
+  }
+}
+
+// knn_search by a group of lanes (lanes.h): the rows of each shell are
+// spread over the lanes, so their cell and point loads are in flight
+// together, where one thread per query waits on them one after another (a
+// pass over few queries takes as long as its slowest query). The heap lives
+// in memory the lanes share; lane 0 inserts the candidates the lanes found
+// (passed through `offered`, one slot per lane). Same keys, same pruning
+// bounds: the result equals knn_search's.
+template <typename T, typename Lanes>
+TV_HD void knn_search_cooperative(const GridView<T>& grid, int64_t batch, Vec3<T> query,
+                                  int32_t excluded, NeighborHeap<T>& heap,
+                                  StridedArray<HeapKey<T>> offered, T infinity, Lanes lanes) {
+  heap.size = 0;  // every lane keeps the same count
+  const Rings<T> rings(grid, batch, query);
+  const int lane = lanes.index();
+  for (int32_t r = 0;; ++r) {
+    const int32_t z0 = rings.low(2, r), y0 = rings.low(1, r);
+    const int32_t ny = rings.high(1, r) - y0 + 1;
+    const int32_t rows = (rings.high(2, r) - z0 + 1) * ny;
+    for (int32_t first = 0; first < rows; first += Lanes::kCount) {
+      RowRanges mine = {{0, 0}, {0, 0}};
+      const int32_t p = first + lane;
+      if (p < rows) {
+        const int32_t z = z0 + p / ny, y = y0 + p % ny;
+        mine = rings.row(r, z, y, rings.gap_z(z), grid.cell_start, heap);
       }
-      if (c[a] + r < dim[a] - 1) {
-        covers_grid = false;
-        bound = min_of(bound, (o[a] + T(c[a] + r + 1) * h) - q[a]);
+      // Each lane walks its ranges; every step, the lanes' candidates go
+      // to lane 0, in lane order.
+      int32_t s = mine.begin[0], end = mine.end[0];
+      bool second = false;
+      for (;;) {
+        if (s >= end && !second) {
+          s = mine.begin[1];
+          end = mine.end[1];
+          second = true;
+        }
+        const bool has_point = s < end;
+        if (!lanes.any(has_point)) break;
+        HeapKey<T> item = HeapKey<T>::make(T(0), -1);
+        bool candidate = false;
+        if (has_point) {
+          const int32_t original = grid.sorted_index[s];
+          item = HeapKey<T>::make(squared_distance(load_vec3(grid.sorted_points + 3 * s), query), original);
+          candidate = original != excluded && (!heap.full() || item < heap.key[0]);
+          ++s;
+        }
+        const uint32_t word = lanes.ballot(candidate);
+        if (word == 0u) continue;
+        if (candidate) offered[lane] = item;
+        lanes.sync();
+        if (lane == 0) {
+          NeighborHeap<T> own = heap;
+          for (uint32_t bits = word; bits != 0u; bits &= bits - 1u) {
+            const HeapKey<T> next = offered[lowest_bit(bits)];
+            if (!own.full()) {
+              own.push(next);
+            } else if (next < own.key[0]) {
+              own.replace_root(next);
+            }
+          }
+        }
+        lanes.sync();
+        // Lane 0 pushed while the heap had room, as many as were offered.
+        heap.size = min_of(heap.size + bit_count(word), heap.capacity);
       }
     }
-    if (covers_grid) break;
-    bound -= margin;
-    if (heap.full() && bound > T(0) && heap.worst() < bound * bound) break;
+    if (rings.exhausted(r, heap, infinity)) break;
   }
 }
 

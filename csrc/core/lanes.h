@@ -1,5 +1,6 @@
-// The lanes that compute one cell together (cooperative_cell.h): the 32
-// lanes of a warp on the GPU, a single lane on the host. The lanes of a group
+// The lanes that compute one item together (a cell in cooperative_cell.h, a
+// query in grid_search.h): the 32 lanes of a warp on the GPU, a single lane
+// on the host. The lanes of a group
 // always take the same branches; these are their collective operations.
 #pragma once
 
@@ -16,6 +17,7 @@ struct SingleLane {
   TV_HD uint32_t below() const { return 0u; }  // the lanes with a lower index, as bits
   TV_HD uint32_t ballot(bool predicate) const { return uint32_t(predicate); }
   TV_HD bool all(bool predicate) const { return predicate; }
+  TV_HD bool any(bool predicate) const { return predicate; }
   TV_HD void sync() const {}
   template <typename T>
   TV_HD T sum(T value) const { return value; }
@@ -25,7 +27,7 @@ struct SingleLane {
 
 #if defined(__CUDACC__)
 // All 32 lanes of a warp, every one of them active (the kernel gives each
-// warp one cell, so a warp never splits). The bodies are device-only; the
+// warp one item, so a warp never splits). The bodies are device-only; the
 // host fallbacks exist only so that host-device templates compile.
 struct WarpLanes {
   static constexpr int kCount = 32;
@@ -49,6 +51,13 @@ struct WarpLanes {
   TV_HD bool all(bool predicate) const {
 #if defined(__CUDA_ARCH__)
     return __all_sync(kAll, predicate) != 0;
+#else
+    return predicate;
+#endif
+  }
+  TV_HD bool any(bool predicate) const {
+#if defined(__CUDA_ARCH__)
+    return __any_sync(kAll, predicate) != 0;
 #else
     return predicate;
 #endif

@@ -17,11 +17,15 @@ namespace torchvor {
 namespace cpu {
 
 struct CpuExec {
+  using Lanes = core::SingleLane;  // the lanes of one cooperative item
   // A cell reads its neighbour list in one cache line or two: row-major.
   static constexpr bool kColumnMajorNeighbors = false;
-  // One thread per cell (ConvexCell): a cooperative cell has nothing to
-  // share its work with here (for_each_cooperative exists for the tests).
+  // One thread per cell (ConvexCell) and per kNN query: a group of lanes
+  // has nothing to share its work with here (the cooperative loops run a
+  // group of one lane, for the tests).
   static bool cooperative_cells(int64_t /*cells*/) { return false; }
+  static bool cooperative_queries(int64_t /*queries*/) { return false; }
+  static bool fits_cooperative_scratch(int64_t /*bytes_per_item*/) { return true; }
 
   // Small grains: the work per index varies a lot (cells near the box,
   // recovery passes), and the grid-ordered indices keep locality anyway.
@@ -58,6 +62,14 @@ struct CpuExec {
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       const auto arrays = std::make_unique<Arrays>();
       for (int64_t i = begin; i < end; ++i) functor(i, core::SingleLane{}, *arrays);
+    });
+  }
+
+  // functor(i, lanes, arena): for_each_with_scratch with a group of one lane.
+  template <typename Functor>
+  static void for_each_cooperative_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
+    for_each_with_scratch(n, bytes, [&](int64_t i, core::ScratchArena arena) {
+      functor(i, core::SingleLane{}, arena);
     });
   }
 

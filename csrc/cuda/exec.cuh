@@ -46,7 +46,19 @@ __global__ void for_each_cooperative_kernel(int64_t n, Functor functor) {
   functor(i, core::WarpLanes{}, reinterpret_cast<Arrays*>(shared_bytes)[warp]);
 }
 
+// One warp per item with `bytes_per_item` of dynamic shared memory each.
+template <typename Functor>
+__global__ void for_each_cooperative_scratch_kernel(int64_t n, int64_t bytes_per_item, Functor functor) {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  const int warp = threadIdx.x / 32;
+  const int64_t i = int64_t(blockIdx.x) * (blockDim.x / 32) + warp;
+  if (i >= n) return;
+  functor(i, core::WarpLanes{}, core::ScratchArena{shared_bytes + warp * bytes_per_item, 0, 1});
+}
+
 struct CudaExec {
+  using Lanes = core::WarpLanes;  // the lanes of one cooperative item
+
   // Output tensors: the caching allocator.
   static at::Tensor empty(at::IntArrayRef sizes, const at::TensorOptions& options) {
     return at::empty(sizes, options);
@@ -71,7 +83,7 @@ struct CudaExec {
   // cell: a warp per cell (CooperativeCell) cuts that latency. A pass over
   // many is throughput-bound, and there one thread per cell (ConvexCell) is
   // as fast or faster: 1M blue noise at k=24, clip kernel 7.8 ms against
-  // 12.8 ms. H100, jittered grid, k=48 (benchmarks/cells_crossover.py):
+  // 12.8 ms. H100, jittered grid, k=48 (benchmarks/crossover.py):
   // 1024 cells 0.245 / 0.048 ms, 4096: 0.260 / 0.090, 16384: 0.271 / 0.251,
   // 65536: 0.844 / 0.966 (thread / warp).
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
@@ -89,6 +101,29 @@ struct CudaExec {
     const int64_t blocks = (n + warps - 1) / warps;
     for_each_cooperative_kernel<Arrays, Functor>
         <<<blocks, int(32 * warps), warps * sizeof(Arrays), at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+
+  // The same for kNN queries: a pass over few queries (a retry pass inside
+  // voronoi) waits on one thread's serial cell and point loads; a warp per
+  // query has them in flight together. TODO(crossover) measured below.
+  static constexpr int64_t kCooperativeQueriesUpTo = 16384;
+  static bool cooperative_queries(int64_t queries) { return queries <= kCooperativeQueriesUpTo; }
+
+  // Whether one warp's scratch fits the 48 KB of shared memory a block gets
+  // without opting in (k up to ~6000 float32 neighbours).
+  static bool fits_cooperative_scratch(int64_t bytes_per_item) { return bytes_per_item <= 48 * 1024; }
+
+  // functor(i, lanes, arena): a warp per item with `bytes_per_item` of
+  // shared memory (fits_cooperative_scratch), up to 4 warps a block.
+  template <typename Functor>
+  static void for_each_cooperative_with_scratch(int64_t n, int64_t bytes_per_item, const Functor& functor) {
+    if (n == 0) return;
+    const int64_t warps = std::max<int64_t>(1, std::min<int64_t>(kThreads / 32, 48 * 1024 / bytes_per_item));
+    const int64_t blocks = (n + warps - 1) / warps;
+    for_each_cooperative_scratch_kernel<Functor><<<blocks, int(32 * warps), warps * bytes_per_item,
+                                                   at::cuda::getCurrentCUDAStream()>>>(n, bytes_per_item,
+                                                                                      functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 

@@ -5,6 +5,8 @@
 
 #include <ATen/ATen.h>
 
+#include <cstdlib>
+#include <cstring>
 #include <tuple>
 #include <type_traits>
 
@@ -15,10 +17,24 @@
 namespace torchvor {
 namespace ops {
 
+// Which implementation runs a pass: one thread per item, or a group of lanes
+// per item (cooperative). The backend chooses by the pass's size; the
+// environment variable `variable` set to "thread" or "cooperative" (read on
+// every call) overrides that for every pass, so that the tests run both on
+// each device and A/B timings need no second build. Other values: the
+// backend's choice.
+inline bool use_cooperative(const char* variable, bool backend_default) {
+  const char* forced = std::getenv(variable);
+  if (forced != nullptr && std::strcmp(forced, "cooperative") == 0) return true;
+  if (forced != nullptr && std::strcmp(forced, "thread") == 0) return false;
+  return backend_default;
+}
+
 // Query t of `order` -> its k nearest points, written to row `row(t)` of
 // (dist2, index). The heap lives in a k-slot scratch array that the executor
 // provides: a contiguous array per CPU thread, shared memory interleaved
-// across a block's threads on the GPU.
+// across a block's threads on the GPU (one thread per query), or shared
+// memory of the lanes that search one query together.
 template <typename T, typename index_t>
 struct KnnFunctor {
   core::GridView<T> grid;
@@ -34,34 +50,63 @@ struct KnnFunctor {
   int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
 
   static int64_t scratch_bytes(int64_t k) { return core::ScratchArena::bytes<core::HeapKey<T>>(k); }
+  // The heap and one offered candidate per lane.
+  template <typename Lanes>
+  static int64_t cooperative_scratch_bytes(int64_t k) {
+    return scratch_bytes(k) + core::ScratchArena::bytes<core::HeapKey<T>>(Lanes::kCount);
+  }
 
+  // One thread searches query t.
   TV_HD void operator()(int64_t t, core::ScratchArena scratch) const {
     const int32_t q = order[t];
-    const int64_t row = (row_by_query ? q : t) * row_stride;
-    const int64_t b = query_batch ? query_batch[q] : 0;
-    const core::Vec3<T> query = core::load_vec3(queries + 3 * (queries_in_order ? t : int64_t(q)));
     const T inf = T(1) / T(0);
     core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
-    core::knn_search(grid, b, query, exclude_self ? q : -1, heap, inf);
-    heap.write_sorted(dist2 ? dist2 + row : nullptr, index + row, column_stride, inf);
+    core::knn_search(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, inf);
+    heap.write_sorted(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride, inf);
   }
+
+  // A group of lanes searches query t together; `scratch` is theirs.
+  template <typename Lanes>
+  TV_HD void operator()(int64_t t, Lanes lanes, core::ScratchArena scratch) const {
+    const int32_t q = order[t];
+    const T inf = T(1) / T(0);
+    core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
+    const core::StridedArray<core::HeapKey<T>> offered = scratch.take<core::HeapKey<T>>(Lanes::kCount);
+    core::knn_search_cooperative(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, offered, inf,
+                                 lanes);
+    heap.write_ranked(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride, inf, lanes);
+  }
+
+  TV_HD int64_t batch_of(int32_t q) const { return query_batch ? query_batch[q] : 0; }
+  TV_HD core::Vec3<T> query(int64_t t, int32_t q) const {
+    return core::load_vec3(queries + 3 * (queries_in_order ? t : int64_t(q)));
+  }
+  TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * row_stride; }
 };
 
 // Runs the search for `count` queries. `dist2` may be undefined when only
 // indices are wanted. Results are (rows, k) row-major, or (k, rows)
-// column-major when `column_major` (coalesced on GPUs).
+// column-major when `column_major` (coalesced on GPUs). TORCHVOR_KNN=thread
+// or =cooperative overrides the backend's choice of implementation.
 template <typename Exec, typename T, typename index_t>
 void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_order,
              const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
              bool exclude_self, bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
+  using Functor = KnnFunctor<T, index_t>;
   const int64_t rows = index.numel() / k;
   const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
-  KnnFunctor<T, index_t> functor{grid, queries, query_batch, order,
-                                 dist2.defined() ? dist2.data_ptr<T>() : nullptr,
-                                 index.data_ptr<index_t>(),
-                                 static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
-                                 row_stride, column_stride};
-  Exec::for_each_with_scratch(count, KnnFunctor<T, index_t>::scratch_bytes(k), functor);
+  const Functor functor{grid, queries, query_batch, order,
+                        dist2.defined() ? dist2.data_ptr<T>() : nullptr,
+                        index.data_ptr<index_t>(),
+                        static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
+                        row_stride, column_stride};
+  const int64_t cooperative_bytes = Functor::template cooperative_scratch_bytes<typename Exec::Lanes>(k);
+  if (Exec::fits_cooperative_scratch(cooperative_bytes) &&
+      use_cooperative("TORCHVOR_KNN", Exec::cooperative_queries(count))) {
+    Exec::for_each_cooperative_with_scratch(count, cooperative_bytes, functor);
+  } else {
+    Exec::for_each_with_scratch(count, Functor::scratch_bytes(k), functor);
+  }
 }
 
 template <typename Exec>

@@ -11,8 +11,6 @@
 #include <ATen/ATen.h>
 
 #include <algorithm>
-#include <cstdlib>
-#include <cstring>
 #include <tuple>
 #include <type_traits>
 #include <vector>
@@ -25,18 +23,6 @@
 
 namespace torchvor {
 namespace ops {
-
-// Which cell implementation clips: one thread per cell (ConvexCell) or a
-// group of lanes per cell (CooperativeCell). The backend chooses by the
-// number of cells in the pass (Exec::cooperative_cells); TORCHVOR_CELLS=thread
-// or =cooperative (read on every call) overrides that for every pass: the
-// tests run both on each device, and A/B timings need no second build.
-inline bool use_cooperative_cells(bool backend_default) {
-  const char* forced = std::getenv("TORCHVOR_CELLS");
-  if (forced != nullptr && std::strcmp(forced, "cooperative") == 0) return true;
-  if (forced != nullptr && std::strcmp(forced, "thread") == 0) return false;
-  return backend_default;
-}
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
 template <typename io_t, typename T, int MAX_PLANES>
@@ -239,11 +225,14 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
+  // One thread per cell (ConvexCell) or a group of lanes per cell
+  // (CooperativeCell): the backend chooses by the pass's size, and
+  // TORCHVOR_CELLS=thread|cooperative overrides it (use_cooperative).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor);
-  } else if (use_cooperative_cells(Exec::cooperative_cells(cells.size(0)))) {
+  } else if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0)))) {
     Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
                                                                                           functor);
   } else {
