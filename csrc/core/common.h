@@ -77,6 +77,25 @@ TV_HD void set_bits(int32_t* word, int32_t bits) {
 #endif
 }
 
+// list[(*count)++] = value if `keep`, from many threads at once; the order
+// of the list is not defined. A warp's values go in lane order with one
+// atomic add per warp (not one per value: a pass can fail 700K cells).
+TV_HD void append_if(bool keep, int32_t value, int32_t* list, int32_t* count) {
+#if defined(__CUDA_ARCH__)
+  const unsigned active = __activemask();
+  const unsigned keeping = __ballot_sync(active, keep);
+  if (keeping == 0u) return;
+  const unsigned lane = threadIdx.x & 31u;  // 1-D blocks of whole warps
+  const int leader = __ffs(keeping) - 1;
+  int32_t first = 0;
+  if (int(lane) == leader) first = atomicAdd(count, __popc(keeping));
+  first = __shfl_sync(active, first, leader);
+  if (keep) list[first + __popc(keeping & ((1u << lane) - 1u))] = value;
+#else
+  if (keep) list[__atomic_fetch_add(count, 1, __ATOMIC_RELAXED)] = value;
+#endif
+}
+
 // A per-item scratch array whose element e lives at data[e * stride]. The CPU
 // gives each item a contiguous array (stride 1); the GPU interleaves the
 // arrays of a block's threads in shared memory (stride = block size), so a

@@ -83,18 +83,19 @@ struct ClipFunctor {
   }
 };
 
-// After a pass: which status codes its cells got (bit code - kNotComputed of
-// `seen`) and which cells failed, in one kernel; the host reads one word.
+// After a pass, in one kernel: which status codes its cells got (bit
+// code - kNotComputed of words[0]) and the list of the cells that failed
+// (words[1] of them); the host reads the two words in one copy.
 struct StatusScanFunctor {
   const int8_t* status;   // by position
   const int32_t* cells;   // the pass's positions
-  bool* failed;           // (cells,) not SUCCESS and not DUPLICATE
-  int32_t* seen;          // one word, zeroed
+  int32_t* failed_cells;  // (cells,) the failed ones (not SUCCESS or DUPLICATE), in no set order
+  int32_t* words;         // two words, zeroed
 
   TV_HD void operator()(int64_t i) const {
     const int8_t code = status[cells[i]];
-    failed[i] = code != core::kSuccess && code != core::kDuplicate;
-    core::set_bits(seen, int32_t(1) << (code - core::kNotComputed));
+    core::set_bits(words, int32_t(1) << (code - core::kNotComputed));
+    core::append_if(code != core::kSuccess && code != core::kDuplicate, cells[i], failed_cells, words + 1);
   }
 };
 
@@ -399,19 +400,24 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
     run(pending, pass);
-    // Which status codes this pass produced, in one read (one device sync);
-    // the failed cells are gathered only when there are some.
-    at::Tensor failed = at::empty({pending.size(0)}, pending.options().dtype(at::kBool));
-    const at::Tensor seen_word = at::zeros({1}, pending.options());
-    Exec::for_each(pending.size(0), StatusScanFunctor{out.status.data_ptr<int8_t>(), pending.data_ptr<int32_t>(),
-                                                      failed.data_ptr<bool>(), seen_word.data_ptr<int32_t>()});
-    const int32_t seen_bits = seen_word.item<int32_t>();
+    // Which status codes this pass produced and which cells failed, in one
+    // read (one device sync). The failed cells come in no set order (the
+    // scan appends them as it finds them); each cell's result does not
+    // depend on the order of a pass.
+    const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
+    const at::Tensor words = at::zeros({2}, pending.options());
+    Exec::for_each(pending.size(0),
+                   StatusScanFunctor{out.status.data_ptr<int8_t>(), pending.data_ptr<int32_t>(),
+                                     failed_cells.data_ptr<int32_t>(), words.data_ptr<int32_t>()});
+    const at::Tensor read = words.to(at::kCPU);
+    const int32_t seen_bits = read.data_ptr<int32_t>()[0];
+    const int64_t failed = read.data_ptr<int32_t>()[1];
     const auto seen = [&](core::CellStatus code) { return ((seen_bits >> (code - core::kNotComputed)) & 1) != 0; };
     const bool ask[3] = {seen(core::kSecurityRadiusNotReached),
                          seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
                          seen(core::kBoundaryError) || seen(core::kIllConditioned)};
     if (!(ask[0] || ask[1] || ask[2] || seen(core::kNotComputed))) break;
-    pending = pending.masked_select(failed);
+    pending = failed_cells.slice(0, 0, failed);
     // Escalate what the failures ask for; stop when nothing is left to raise.
     PassSettings next = pass;
     // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
