@@ -118,10 +118,10 @@ def lloyd(
     current = points.detach()  # never written in place: each iteration makes a new tensor
     box_tensor = as_box(current, box, batch).detach()
     lower, upper = _per_point_bounds(box_tensor, batch)
-    # Displacements are divided by the box diagonal: a number on the host
-    # without batch (one fewer kernel per iteration), per point with it.
-    diagonal = (upper - lower).norm(dim=1).clamp_min(torch.finfo(current.dtype).tiny)
-    inverse_diagonal = 1.0 / float(diagonal) if batch is None else 1.0 / diagonal
+    # Displacements are divided by the box diagonal, (1,) without batch or
+    # (N,) with one, in float64 (read along with the energy, see
+    # _move_to_centroids: no device sync before the first iteration).
+    diagonal = (upper - lower).to(torch.float64).norm(dim=1).clamp_min(torch.finfo(current.dtype).tiny)
     next_k = FIRST_K if k is None else k
     history: List[LloydStep] = []
     for iteration in range(iters):
@@ -129,7 +129,7 @@ def lloyd(
         # "flag": failures are reported below from the same single read.
         cells = voronoi(current, box_tensor, batch=batch, k=next_k, on_failure="flag")
         moved, energy, max_displacement, failed, needed = _move_to_centroids(
-            current, cells, lower, upper, inverse_diagonal)
+            current, cells, lower, upper, diagonal)
         if failed:
             warnings.warn(f"torchvor.lloyd: {failed} cell(s) could not be computed in iteration "
                           f"{iteration}; their points stay in place", RuntimeWarning, stacklevel=2)
@@ -180,7 +180,7 @@ def _per_point_bounds(box: torch.Tensor, batch: Optional[torch.Tensor]) -> Tuple
 
 
 def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.Tensor, upper: torch.Tensor,
-                       inverse_diagonal: Union[float, torch.Tensor]) -> Tuple[torch.Tensor, float, float, int, int]:
+                       diagonal: torch.Tensor) -> Tuple[torch.Tensor, float, float, int, int]:
     """One Lloyd move and what it measured, with one host read:
     (moved points, energy, max displacement / box diagonal, failed cells,
     neighbours needed by K_QUANTILE of the cells).
@@ -191,7 +191,9 @@ def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.
     make the energy NaN; only then are the failures located, and their
     points put back. The energy is summed in float64 (a float32 total blurs
     the small decrease of late iterations); the quantile comes from a
-    histogram read with the rest (O(N), no sort).
+    histogram read with the rest (O(N), no sort). One box diagonal (float64,
+    shape (1,)) divides the largest displacement on the host; per-point
+    diagonals (N,) divide the displacements first.
     """
     count = current.shape[0]
     if count == 0:
@@ -201,8 +203,9 @@ def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.
     # voronoi call would reject.
     moved = cells.centroid.clamp(lower, upper)
     displacement = torch.linalg.vector_norm(moved - current, dim=1)
-    if isinstance(inverse_diagonal, torch.Tensor):
-        displacement = displacement * inverse_diagonal
+    one_diagonal = diagonal.shape[0] == 1
+    if not one_diagonal:
+        displacement = displacement / diagonal
     # The quantile of at most 2 * QUANTILE_SAMPLE cells spread over the input
     # (its standard error is then ~0.05% of the cells): a histogram of 1M
     # counts took 0.1 ms of the GPU, the bins being few and contended.
@@ -213,18 +216,18 @@ def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.
     bins = 1024
     histogram = torch.histc(sample.to(torch.float64), bins=bins, min=0, max=bins)
     read = torch.cat([cells.second_moment.sum(dtype=torch.float64).view(1),
-                      displacement.max().view(1).to(torch.float64), histogram]).cpu().numpy()
+                      displacement.max().view(1).to(torch.float64), diagonal[:1], histogram]).cpu().numpy()
     energy, max_displacement = float(read[0]), float(read[1])
     rank = min(sample.shape[0], max(1, math.ceil(K_QUANTILE * sample.shape[0])))
-    needed = int(np.searchsorted(np.cumsum(read[2:]), rank))  # first bin whose cumulative count reaches rank
+    needed = int(np.searchsorted(np.cumsum(read[3:]), rank))  # first bin whose cumulative count reaches rank
     failed = 0
     if not math.isfinite(energy):
         failed_cells = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
         failed = int(failed_cells.sum())
         moved = torch.where(failed_cells.unsqueeze(1), current, moved)
         max_displacement = float(displacement.masked_fill(failed_cells, 0).max())
-    if not isinstance(inverse_diagonal, torch.Tensor):
-        max_displacement *= inverse_diagonal
+    if one_diagonal:
+        max_displacement /= float(read[2])
     return moved, energy, max_displacement, failed, needed
 
 
