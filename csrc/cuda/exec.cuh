@@ -79,15 +79,21 @@ struct CudaExec {
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 
+  // A warp per cell (CooperativeCell) or a thread per cell (ConvexCell).
   // A pass over few cells (retries, the pilot) takes as long as its slowest
-  // cell: a warp per cell (CooperativeCell) cuts that latency. A pass over
-  // many is throughput-bound, and there one thread per cell (ConvexCell) is
-  // as fast or faster: 1M blue noise at k=24, clip kernel 7.8 ms against
-  // 12.8 ms. H100, jittered grid, k=48 (benchmarks/crossover.py):
-  // 1024 cells 0.245 / 0.048 ms, 4096: 0.260 / 0.090, 16384: 0.271 / 0.251,
-  // 65536: 0.844 / 0.966 (thread / warp).
+  // cell, and a warp cuts that latency (H100, jittered grid, k=48, clip
+  // kernel thread / warp, benchmarks/crossover.py: 1024 cells 0.245 / 0.048
+  // ms, 16384: 0.278 / 0.251, 65536: 0.844 / 0.958). Over many cells, a
+  // thread per cell wins when cells have few neighbours (1M blue noise,
+  // k=24: clip kernel 7.8 ms against 12.8), and a warp wins when they have
+  // many: a thread then tests many neighbours against many vertices one at
+  // a time, and the threads of a warp diverge (1M white noise, k=64: voronoi
+  // 46.5 ms by thread, 30.8 ms by warp).
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
-  static bool cooperative_cells(int64_t cells) { return cells <= kCooperativeCellsUpTo; }
+  static constexpr int64_t kCooperativeCellsFromK = 56;
+  static bool cooperative_cells(int64_t cells, int64_t k) {
+    return cells <= kCooperativeCellsUpTo || k >= kCooperativeCellsFromK;
+  }
 
   // functor(i, lanes, arrays): the 32 lanes of a warp (core::WarpLanes) per
   // item, sharing one Arrays in shared memory; up to 4 warps a block, fewer
@@ -106,7 +112,9 @@ struct CudaExec {
 
   // The same for kNN queries: a pass over few queries (a retry pass inside
   // voronoi) waits on one thread's serial cell and point loads; a warp per
-  // query has them in flight together. TODO(crossover) measured below.
+  // query has them in flight together (H100, 1M jittered grid, k=28, kNN
+  // kernel thread / warp: 1024 queries 0.206 / 0.034 ms, 16384: 0.195 /
+  // 0.139, 65536: 0.233 / 0.491; benchmarks/crossover.py).
   static constexpr int64_t kCooperativeQueriesUpTo = 16384;
   static bool cooperative_queries(int64_t queries) { return queries <= kCooperativeQueriesUpTo; }
 

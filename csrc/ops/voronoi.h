@@ -227,13 +227,13 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
       out.num_neighbors.data_ptr<int32_t>()};
   // One thread per cell (ConvexCell) or a group of lanes per cell
-  // (CooperativeCell): the backend chooses by the pass's size, and
+  // (CooperativeCell): the backend chooses by the pass's size and k, and
   // TORCHVOR_CELLS=thread|cooperative overrides it (use_cooperative).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor);
-  } else if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0)))) {
+  } else if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1)))) {
     Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
                                                                                           functor);
   } else {
