@@ -84,13 +84,19 @@ struct CudaExec {
   // cell, and a warp cuts that latency (H100, jittered grid, k=48, clip
   // kernel thread / warp, benchmarks/crossover.py: 1024 cells 0.245 / 0.048
   // ms, 16384: 0.278 / 0.251, 65536: 0.844 / 0.958). Over many cells, a
-  // thread per cell wins when cells have few neighbours (1M blue noise,
-  // k=24: clip kernel 7.8 ms against 12.8), and a warp wins when they have
-  // many: a thread then tests many neighbours against many vertices one at
-  // a time, and the threads of a warp diverge (1M white noise, k=64: voronoi
-  // 46.5 ms by thread, 30.8 ms by warp).
+  // thread per cell wins on regular cells (blue noise), and a warp wins on
+  // irregular ones (white noise, perturbed grids): a thread then tests many
+  // neighbours against many vertices one at a time, and the threads of a
+  // warp diverge. The pass's k tells them apart, as the pilot (or Lloyd's
+  // adapted k) picks it from the neighbours the cells need: blue noise gets
+  // 19-24, perturbed grids ~48, white noise ~64. Voronoi wall time at 1M,
+  // thread / warp, H100 (crossover.py --op k): blue k=24 10.2 / 15.6 ms,
+  // k=32 10.8 / 16.3; perturbed k=48 30.8 / 24.0; white k=64 48.0 / 32.0
+  // (white and perturbed favour the warp at every k from 24 to 80, blue the
+  // thread at every k). From k = 40: a caller's k up to 39 on blue noise
+  // stays on threads, and the pilot's k of both irregular kinds is above.
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
-  static constexpr int64_t kCooperativeCellsFromK = 56;
+  static constexpr int64_t kCooperativeCellsFromK = 40;
   static bool cooperative_cells(int64_t cells, int64_t k) {
     return cells <= kCooperativeCellsUpTo || k >= kCooperativeCellsFromK;
   }
