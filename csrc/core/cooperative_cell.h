@@ -36,6 +36,10 @@ struct CooperativeCellArrays {
   uint16_t hole[MAX_TRIANGLES];
   uint16_t edge[MAX_PLANES];
   uint32_t link[MAX_PLANES];
+  // The removed triangles' directed edges as bits: bit `to` of plane
+  // `from`'s kMaskWords words (cleared for the removed triangles' corners).
+  static constexpr int kMaskWords = (MAX_PLANES + 31) / 32;
+  uint32_t edge_mask[MAX_PLANES * kMaskWords];
   uint8_t renumber[MAX_PLANES];  // compact_planes
 };
 
@@ -220,12 +224,30 @@ struct CooperativeCell {
       if ((clipped[j] >> lane) & 1u) {
         const int t = j * kLanes + lane;
         const int i = removed + bit_count(clipped[j] & below);
-        a.removed[i] = a.triangle[t];
+        const uint32_t corners = a.triangle[t];
+        a.removed[i] = corners;
         a.hole[i] = static_cast<uint16_t>(t);
+        TV_UNROLL
+        for (int e = 0; e < 3; ++e) {
+          TV_UNROLL
+          for (int w = 0; w < Arrays::kMaskWords; ++w) a.edge_mask[corner(corners, e) * Arrays::kMaskWords + w] = 0u;
+        }
       }
       removed += bit_count(clipped[j]);
     }
     stamp += 1u;
+    lanes.sync();
+    // An edge from -> to is interior iff a removed triangle has to -> from:
+    // each removed triangle sets its edges' bits, then every edge tests one
+    // bit (not every removed triangle).
+    for (int i = lane; i < removed; i += kLanes) {
+      const uint32_t corners = a.removed[i];
+      TV_UNROLL
+      for (int e = 0; e < 3; ++e) {
+        const uint32_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+        lanes.set_shared_bits(&a.edge_mask[from * Arrays::kMaskWords + to / 32], 1u << (to % 32));
+      }
+    }
     lanes.sync();
     boundary = 0;
     for (int base = 0; base < removed; base += kLanes) {
@@ -236,10 +258,7 @@ struct CooperativeCell {
         TV_UNROLL
         for (int e = 0; e < 3; ++e) {
           const uint32_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
-          const uint32_t reverse = to | from << 8;
-          bool interior = false;
-          for (int m = 0; m < removed; ++m) interior |= has_edge(a.removed[m], reverse);
-          on_boundary[e] = !interior;
+          on_boundary[e] = ((a.edge_mask[to * Arrays::kMaskWords + from / 32] >> (from % 32)) & 1u) == 0u;
         }
       }
       const uint32_t words[3] = {lanes.ballot(on_boundary[0]), lanes.ballot(on_boundary[1]),

@@ -19,6 +19,7 @@ struct SingleLane {
   TV_HD bool all(bool predicate) const { return predicate; }
   TV_HD bool any(bool predicate) const { return predicate; }
   TV_HD void sync() const {}
+  TV_HD void set_shared_bits(uint32_t* word, uint32_t bits) const { *word |= bits; }
   template <typename T>
   TV_HD T sum(T value) const { return value; }
   template <typename T>
@@ -60,6 +61,14 @@ struct WarpLanes {
     return __any_sync(kAll, predicate) != 0;
 #else
     return predicate;
+#endif
+  }
+  // *word |= bits, from any number of lanes at once (shared memory).
+  TV_HD void set_shared_bits(uint32_t* word, uint32_t bits) const {
+#if defined(__CUDA_ARCH__)
+    atomicOr(word, bits);
+#else
+    *word |= bits;
 #endif
   }
   // Orders the lanes' shared-memory writes before the reads that follow.
