@@ -18,7 +18,8 @@ namespace torchvor {
 namespace ops {
 
 // Which implementation runs a pass: one thread per item, or a group of lanes
-// per item (cooperative). The backend chooses by the pass's size; the
+// per item (cooperative). The backend chooses (Exec::cooperative_queries
+// by the pass's size, Exec::cooperative_cells by its size and k); the
 // environment variable `variable` set to "thread" or "cooperative" (read on
 // every call) overrides that for every pass, so that the tests run both on
 // each device and A/B timings need no second build. Other values: the
