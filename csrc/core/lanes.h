@@ -1,7 +1,7 @@
 // The lanes that compute one item together (a cell in cooperative_cell.h, a
 // query in grid_search.h): the 32 lanes of a warp on the GPU, a single lane
-// on the host. The lanes of a group
-// always take the same branches; these are their collective operations.
+// on the host. The lanes of a group always take the same branches; these are
+// their collective operations.
 #pragma once
 
 #include "common.h"
