@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|bench|sweep|profile|sanitize|ncu]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -37,6 +37,30 @@ for step in "${@:-smoke}"; do
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+    lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
+    ncusource)  # source-level profile of both clip kernels: a warp per cell on white noise (k=64),
+                # a thread per cell on blue noise (k=24); summaries and CSVs in $OUT
+      python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
+import sys, torch, torchvor.samples
+sys.path.insert(0, "benchmarks")
+import common
+torch.save(torchvor.samples.white_noise(1_000_000, seed=1), "/tmp/white_1m.pt")
+blue, _ = common.make_points("blue", 1_000_000, seed=0, dtype=torch.float32, device=torch.device("cuda"),
+                             cache_dir=common.Path("benchmarks/.cache"))
+torch.save(blue.cpu(), "/tmp/blue_1m.pt")
+PY
+      for case in "warp_white white 64 for_each_cooperative_kernel" "thread_blue blue 24 for_each_kernel"; do
+        read -r name points k kernel <<<"$case"
+        ncu --clock-control none --set full --import-source yes --kernel-name-base demangled \
+            -k "regex:${kernel}<.*ClipFunctor" --launch-count 1 -f -o "$OUT/clip_$name" python3 -c "
+import torch, torchvor
+p = torch.load('/tmp/${points}_1m.pt').cuda()
+torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=$k, on_failure='flag'); torch.cuda.synchronize()
+" 2>&1 | grep -v '^==PROF==' | tail -3
+        python3 benchmarks/ncu_source.py "$OUT/clip_$name.ncu-rep" --csv-dir "$OUT" 2>&1 | tee "$OUT/ncu_source_$name.log" | head -70
+        ncu --import "$OUT/clip_$name.ncu-rep" --page details 2>&1 | grep -E "Duration|Registers|Achieved Occupancy|Theoretical Occupancy|Issued Warp|Eligible|L1/TEX Hit|L2 Hit|Executed Ipc A|Avg. Active Threads|Local" | tee -a "$OUT/ncu_source_$name.log"
+        rm -f "$OUT/clip_$name.ncu-rep"  # the CSVs and summaries above hold what is needed
+      done ;;
     sweep) python3 benchmarks/sweep_lloyd_k.py --device cuda --sizes 1M --repeats 20 --timeline 2>&1 | grep -v USDT | tee "$OUT/sweep.log" ;;
     profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
     ncu)
