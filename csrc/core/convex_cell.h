@@ -9,6 +9,7 @@
 
 #include "common.h"
 #include "double_double.h"
+#include "lanes.h"
 #include "status.h"
 
 namespace torchvor {
@@ -90,6 +91,15 @@ TV_HD bool has_edge(uint32_t corners, uint32_t code) {
          (((corners >> 16) | (corners & 0xffu) << 8) == code);
 }
 
+// Whether a removed region's boundary of `length` edges is one cycle without
+// walking it, given that its edges leave distinct planes, enter distinct
+// planes, and enter only planes they leave: then they form disjoint cycles.
+// None has one edge (an edge joins two planes) or two (edges a -> b and
+// b -> a of removed triangles are interior, not boundary edges), so up to 5
+// edges make a single cycle. Longer boundaries are walked. (The walk was a
+// tenth of the warp cell's stall samples on white noise, ncu, H100.)
+TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
+
 // Volume, first moment and second moment (integral of |x|^2) of a cell,
 // relative to the seed, summed over six signed tetrahedra per vertex (§3.5):
 // seed, foot of the seed on a plane, foot on an edge line, the vertex.
@@ -156,6 +166,7 @@ struct CellMoments {
 // local memory.
 template <int WORDS>
 struct BitSet {
+  static constexpr int kWords = WORDS;
   uint32_t word[WORDS];
 
   TV_HD void clear() {
@@ -200,6 +211,7 @@ struct BitSet {
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
 struct ConvexCell {
   using Scalar = T;
+  using Lanes = SingleLane;  // one thread computes the cell
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
@@ -211,11 +223,12 @@ struct ConvexCell {
   CachedVertex<T> vertex[MAX_TRIANGLES];  // vertex of triangle t
   int32_t num_planes;
   int32_t num_triangles;
-  T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
-  bool radius_stale; // vertices were removed since radius2_bound was exact
+  T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
   T tolerance;       // relative tolerance of the clipping predicate
   int max_band_widenings;  // retries of an inconsistent clip with a 10x wider band
   int8_t status;
+
+  TV_HD Lanes group() const { return {}; }
 
   TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
   TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
@@ -225,13 +238,11 @@ struct ConvexCell {
     for (int q = 0; q < 6; ++q) plane[q] = box_plane(q, lo, hi);
     num_planes = 6;
     num_triangles = 8;
-    radius2_bound = T(0);
+    radius2 = T(0);
     for (int t = 0; t < 8; ++t) {
       const uint32_t corners = box_triangle(t);
-      radius2_bound = max_of(radius2_bound, set_triangle(t, corner(corners, 0), corner(corners, 1),
-                                                         corner(corners, 2)).radius2);
+      radius2 = max_of(radius2, set_triangle(t, corner(corners, 0), corner(corners, 1), corner(corners, 2)).radius2);
     }
-    radius_stale = false;
     tolerance = relative_tolerance;
     max_band_widenings = band_widenings;
     status = kSuccess;
@@ -246,24 +257,9 @@ struct ConvexCell {
     return v;
   }
 
-  // Exact squared radius of the ball around the seed holding the cell.
-  TV_HD T radius2() {
-    if (radius_stale) {
-      T r2 = T(0);
-      for (int t = 0; t < num_triangles; ++t) {
-        r2 = max_of(r2, vertex[t].radius2);
-      }
-      radius2_bound = r2;
-      radius_stale = false;
-    }
-    return radius2_bound;
-  }
-
-  // Whether no neighbour this far (or farther) can cut the cell: the cheap
-  // running bound first, the exact radius only when that is not enough.
-  TV_HD bool security_radius_reached(T neighbor_dist2) {
-    if (beyond_security_radius(neighbor_dist2, radius2_bound, tolerance)) return true;
-    return radius_stale && beyond_security_radius(neighbor_dist2, radius2(), tolerance);
+  // Whether no neighbour this far (or farther) can cut the cell.
+  TV_HD bool security_radius_reached(T neighbor_dist2) const {
+    return beyond_security_radius(neighbor_dist2, radius2, tolerance);
   }
 
   // Clip by the bisector of the seed (origin) and a neighbour at `r` (paper
@@ -279,6 +275,7 @@ struct ConvexCell {
     // far enough from the plane, every classification agrees with the exact
     // one, and the volume error stays of the order of the band.
     Mask clipped;
+    T kept_radius2;  // the largest |vertex|^2 of the vertices the plane keeps
     uint8_t next[MAX_PLANES];
     PlaneSet on_boundary;
     int boundary_length = 0;
@@ -286,7 +283,7 @@ struct ConvexCell {
     T band = tolerance;
     for (int attempt = 0;; ++attempt, band = band * T(10)) {
       if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
-      if (!classify(p, -band * r2, clipped)) return true;  // the plane misses the cell
+      if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
       if (num_planes == MAX_PLANES) compact_planes();
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
       if (removed_boundary(clipped, next, on_boundary, boundary_length, start)) break;
@@ -299,18 +296,20 @@ struct ConvexCell {
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
     // triangles carries no meaning (the integrals are sums over them).
+    // The radius stays exact: the kept vertices' and the new ones'.
     typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
+    T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
       const int slot = e < removed ? holes.next() : num_triangles++;
       const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane)).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
-      radius2_bound = max_of(radius2_bound, v2);
+      largest = max_of(largest, v2);
       from = to;
     }
     if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
-    radius_stale = true;
+    radius2 = largest;
     return true;
   }
 
@@ -335,18 +334,23 @@ struct ConvexCell {
   }
 
   // Marks the vertices more than `threshold` (< 0) outside plane p; returns
-  // whether any is. Independent iterations: several vertex loads in flight
-  // at once (the GPU kernel is bound by local-memory latency); the mask
-  // words are built in registers.
-  TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped) const {
+  // whether any is, and the largest |vertex|^2 of the others (the radius
+  // after the clip, the new vertices aside, with no second pass over the
+  // vertices). Independent iterations: several vertex loads in flight at
+  // once (the GPU kernel is bound by local-memory latency); the mask words
+  // are built in registers.
+  TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped, T& kept_radius2) const {
     uint32_t any_clipped = 0u;
+    kept_radius2 = T(0);
     TV_UNROLL
     for (int w = 0; w < kMaskWords; ++w) {
       uint32_t bits = 0u;
       const int end = min_of(num_triangles - 32 * w, 32);
       for (int i = 0; i < end; ++i) {
-        const bool outside = dot(p.normal, vertex[32 * w + i].position) + p.offset < threshold;
+        const CachedVertex<T> v = vertex[32 * w + i];
+        const bool outside = dot(p.normal, v.position) + p.offset < threshold;
         bits |= uint32_t(outside) << i;
+        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
       }
       clipped.word[w] = bits;
       any_clipped |= bits;
@@ -375,9 +379,9 @@ struct ConvexCell {
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
   // reverse is not in R, as a successor map over plane ids (next[x] is valid
   // where `on_boundary` has x). False if the boundary is not one simple
-  // cycle. The removed triangles are gathered first, so that the search for
-  // reverse edges is a short branch-free loop of the same length in every
-  // lane.
+  // cycle (single_cycle). The removed triangles are gathered first, so that
+  // the search for reverse edges is a short branch-free loop of the same
+  // length in every lane.
   TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
     uint32_t removed[MAX_TRIANGLES];
@@ -387,6 +391,8 @@ struct ConvexCell {
         removed[count++] = triangle[32 * w + lowest_bit(bits)];
     }
     on_boundary.clear();
+    PlaneSet targets;  // the planes boundary edges go to
+    targets.clear();
     length = 0;
     start = kNone;
     for (int i = 0; i < count; ++i) {
@@ -397,15 +403,21 @@ struct ConvexCell {
         bool interior = false;
         for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
         if (interior) continue;
-        if (on_boundary.test(from)) return false;  // a vertex twice on the boundary
+        // A plane twice on the boundary: not a simple cycle.
+        if (on_boundary.test(from) || targets.test(to)) return false;
         on_boundary.set(from);
+        targets.set(to);
         next[from] = to;
         start = from;
         ++length;
       }
     }
-    // One simple cycle through every boundary edge (not several, not broken).
-    return length >= 3 && cycle_length(next, on_boundary, start) == length;
+    if (length < 3) return false;
+    TV_UNROLL
+    for (int w = 0; w < PlaneSet::kWords; ++w) {
+      if (targets.word[w] != on_boundary.word[w]) return false;  // an edge leads off the boundary
+    }
+    return short_cycle_needs_no_walk(length) || cycle_length(next, on_boundary, start) == length;
   }
 
   // Edges on the way from `start` back to itself; stops early at a dead end.

@@ -30,12 +30,14 @@ struct CooperativeCellArrays {
   uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
   // One clip's removed region: the removed triangles' corners and slots
   // (slots increasing), its boundary edges (from | to << 8, any order), and
-  // the successor of each boundary plane id (to | stamp << 8: the stamp
-  // tells this clip's links from older ones without clearing the array).
+  // the successor and the predecessor of each boundary plane id (to | stamp
+  // << 8 and from | stamp << 8: the stamp tells this clip's links from older
+  // ones without clearing the arrays).
   uint32_t removed[MAX_TRIANGLES];
   uint16_t hole[MAX_TRIANGLES];
   uint16_t edge[MAX_PLANES];
   uint32_t link[MAX_PLANES];
+  uint32_t back_link[MAX_PLANES];
   // The removed triangles' directed edges as bits: bit `to` of plane
   // `from`'s kMaskWords words (cleared for the removed triangles' corners).
   static constexpr int kMaskWords = (MAX_PLANES + 31) / 32;
@@ -43,9 +45,10 @@ struct CooperativeCellArrays {
   uint8_t renumber[MAX_PLANES];  // compact_planes
 };
 
-template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename Lanes>
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename LanesT>
 struct CooperativeCell {
   using Scalar = T;
+  using Lanes = LanesT;
   using Arrays = CooperativeCellArrays<T, MAX_PLANES, MAX_TRIANGLES>;
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static_assert(MAX_TRIANGLES <= 65535, "slots are stored as uint16");
@@ -59,14 +62,15 @@ struct CooperativeCell {
   // Uniform across the lanes (each computes the same value).
   int32_t num_planes;
   int32_t num_triangles;
-  T radius2_bound;   // >= max |vertex|^2 (running maximum, exact when !radius_stale)
-  bool radius_stale; // vertices were removed since radius2_bound was exact
+  T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
   T tolerance;       // relative tolerance of the clipping predicate
   int max_band_widenings;
   int8_t status;
   uint32_t stamp;    // numbers the boundary searches (see CooperativeCellArrays::link)
 
   TV_HD CooperativeCell(Arrays& arrays, Lanes group) : a(arrays), lanes(group) {}
+
+  TV_HD Lanes group() const { return lanes; }
 
   TV_HD static uint32_t pack(uint32_t p, uint32_t q, uint32_t r) { return p | q << 8 | r << 16; }
   TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
@@ -76,14 +80,16 @@ struct CooperativeCell {
     for (int q = lane; q < 6; q += kLanes) a.plane[q] = box_plane(q, lo, hi);
     // Links of the previous cell in these arrays carry stamps this cell
     // will reuse: clear them.
-    for (int q = lane; q < MAX_PLANES; q += kLanes) a.link[q] = 0u;
+    for (int q = lane; q < MAX_PLANES; q += kLanes) {
+      a.link[q] = 0u;
+      a.back_link[q] = 0u;
+    }
     lanes.sync();
     T largest = T(0);
     for (int t = lane; t < 8; t += kLanes) largest = max_of(largest, set_triangle(t, box_triangle(t)).radius2);
-    radius2_bound = lanes.max(largest);
+    radius2 = lanes.max(largest);
     num_planes = 6;
     num_triangles = 8;
-    radius_stale = false;
     tolerance = relative_tolerance;
     max_band_widenings = band_widenings;
     status = kSuccess;
@@ -91,20 +97,8 @@ struct CooperativeCell {
     lanes.sync();
   }
 
-  // Exact squared radius of the ball around the seed holding the cell.
-  TV_HD T radius2() {
-    if (radius_stale) {
-      T largest = T(0);
-      for_own_slots([&](int t) { largest = max_of(largest, a.vertex[t].radius2); });
-      radius2_bound = lanes.max(largest);
-      radius_stale = false;
-    }
-    return radius2_bound;
-  }
-
-  TV_HD bool security_radius_reached(T neighbor_dist2) {
-    if (beyond_security_radius(neighbor_dist2, radius2_bound, tolerance)) return true;
-    return radius_stale && beyond_security_radius(neighbor_dist2, radius2(), tolerance);
+  TV_HD bool security_radius_reached(T neighbor_dist2) const {
+    return beyond_security_radius(neighbor_dist2, radius2, tolerance);
   }
 
   // ConvexCell::clip_by_bisector, by the group: the same band widening, the
@@ -115,12 +109,13 @@ struct CooperativeCell {
     const T r2 = dot(r, r);
     const Plane<T> p = bisector_plane(r, r2);
     uint32_t clipped[kRounds];
+    T kept_radius2;  // this lane's largest |vertex|^2 among the vertices the plane keeps
     int removed = 0;
     int boundary = 0;
     T band = tolerance;
     for (int attempt = 0;; ++attempt, band = band * T(10)) {
       if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
-      if (!classify(p, -band * r2, clipped)) return true;  // the plane misses the cell
+      if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
       if (num_planes == MAX_PLANES) compact_planes();
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
       if (removed_boundary(clipped, removed, boundary)) break;
@@ -132,8 +127,9 @@ struct CooperativeCell {
     if (lane == 0) a.plane[new_plane] = p;
     lanes.sync();
     // Close the hole with a fan: boundary edge e (from, to) becomes triangle
-    // (from, to, new plane).
-    T largest = T(0);
+    // (from, to, new plane). The radius stays exact: the kept vertices' and
+    // the new ones'.
+    T largest = kept_radius2;
     bool finite = true;
     for (int e = lane; e < boundary; e += kLanes) {
       const uint32_t edge = a.edge[e];
@@ -145,9 +141,8 @@ struct CooperativeCell {
     if (boundary < removed) fill_holes(clipped, boundary, new_count);
     lanes.sync();
     if (!lanes.all(finite)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
-    radius2_bound = max_of(radius2_bound, lanes.max(largest));
+    radius2 = lanes.max(largest);
     num_triangles = new_count;
-    radius_stale = true;
     return true;
   }
 
@@ -196,14 +191,20 @@ struct CooperativeCell {
   }
 
   // The ballot words of the vertices more than `threshold` (< 0) outside
-  // plane p; whether any is.
-  TV_HD bool classify(const Plane<T>& p, T threshold, uint32_t (&clipped)[kRounds]) const {
+  // plane p; whether any is; and the largest |vertex|^2 of this lane's
+  // vertices that the plane keeps.
+  TV_HD bool classify(const Plane<T>& p, T threshold, uint32_t (&clipped)[kRounds], T& kept_radius2) const {
     uint32_t any_clipped = 0u;
+    kept_radius2 = T(0);
     TV_UNROLL
     for (int j = 0; j < kRounds; ++j) {
       const int t = j * kLanes + lanes.index();
-      const bool outside =
-          t < num_triangles && dot(p.normal, a.vertex[t].position) + p.offset < threshold;
+      bool outside = false;
+      if (t < num_triangles) {
+        const CachedVertex<T> v = a.vertex[t];
+        outside = dot(p.normal, v.position) + p.offset < threshold;
+        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
+      }
       clipped[j] = lanes.ballot(outside);
       any_clipped |= clipped[j];
     }
@@ -272,6 +273,7 @@ struct CooperativeCell {
         const uint32_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
         if (index < MAX_PLANES) a.edge[index] = static_cast<uint16_t>(from | to << 8);
         a.link[from] = to | stamp << 8;
+        a.back_link[to] = from | stamp << 8;
         ++index;
       }
       boundary += bit_count(words[0]) + bit_count(words[1]) + bit_count(words[2]);
@@ -279,14 +281,18 @@ struct CooperativeCell {
     // More edges than planes: some plane is on the boundary twice.
     if (boundary < 3 || boundary > MAX_PLANES) return false;
     lanes.sync();
-    // Every plane at most once on the boundary: each edge's link is its own
-    // (two edges from one plane: one of their links was overwritten).
+    // Every plane at most once on the boundary: each edge's links are its
+    // own (two edges from one plane, or to one plane: one of their links was
+    // overwritten); and every edge leads to a plane that an edge leaves.
     bool own_links = true;
     for (int e = lane; e < boundary; e += kLanes) {
       const uint32_t edge = a.edge[e];
-      own_links = own_links && a.link[edge & 0xffu] == ((edge >> 8) | stamp << 8);
+      const uint32_t from = edge & 0xffu, to = edge >> 8;
+      own_links = own_links && a.link[from] == (to | stamp << 8) && a.back_link[to] == (from | stamp << 8) &&
+                  (a.link[to] >> 8) == stamp;
     }
     if (!lanes.all(own_links)) return false;
+    if (short_cycle_needs_no_walk(boundary)) return true;
     // One simple cycle through every boundary edge (not several): walk it
     // (every lane, reading the same links).
     const uint32_t start = a.edge[0] & 0xffu;

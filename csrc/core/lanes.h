@@ -24,6 +24,8 @@ struct SingleLane {
   TV_HD T sum(T value) const { return value; }
   template <typename T>
   TV_HD T max(T value) const { return value; }
+  template <typename T>
+  TV_HD T broadcast(T value, int /*lane*/) const { return value; }
 };
 
 #if defined(__CUDACC__)
@@ -94,6 +96,16 @@ struct WarpLanes {
     for (int offset = 16; offset > 0; offset /= 2) value = max_of(value, __shfl_xor_sync(kAll, value, offset));
 #endif
     return value;
+  }
+  // Lane `lane`'s value, in every lane.
+  template <typename T>
+  TV_HD T broadcast(T value, int lane) const {
+#if defined(__CUDA_ARCH__)
+    return __shfl_sync(kAll, value, lane);
+#else
+    (void)lane;
+    return value;
+#endif
   }
 };
 #endif
