@@ -38,19 +38,23 @@ for step in "${@:-smoke}"; do
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
-    ncusource)  # source-level profile of both clip kernels: a warp per cell on white noise (k=64),
-                # a thread per cell on blue noise (k=24); summaries and CSVs in $OUT
+    ncusource)  # source-level profile of the clip kernels: a warp per cell on white noise (k=64) and on a
+                # perturbed grid (k=48), a thread per cell on blue noise (k=24); NCU_CASES picks some
+                # (default all); summaries and SASS CSVs in $OUT
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
 import sys, torch, torchvor.samples
 sys.path.insert(0, "benchmarks")
 import common
 torch.save(torchvor.samples.white_noise(1_000_000, seed=1), "/tmp/white_1m.pt")
+torch.save(torchvor.samples.perturbed_grid(1_000_000, seed=1), "/tmp/perturbed_1m.pt")
 blue, _ = common.make_points("blue", 1_000_000, seed=0, dtype=torch.float32, device=torch.device("cuda"),
                              cache_dir=common.Path("benchmarks/.cache"))
 torch.save(blue.cpu(), "/tmp/blue_1m.pt")
 PY
-      for case in "warp_white white 64 for_each_cooperative_kernel" "thread_blue blue 24 for_each_kernel"; do
+      for case in "warp_white white 64 for_each_cooperative_kernel" "warp_perturbed perturbed 48 for_each_cooperative_kernel" \
+                  "thread_blue blue 24 for_each_kernel"; do
         read -r name points k kernel <<<"$case"
+        [[ " ${NCU_CASES:-$name} " == *" $name "* ]] || continue
         ncu --clock-control none --set full --import-source yes --kernel-name-base demangled \
             -k "regex:${kernel}<.*ClipFunctor" --launch-count 1 -f -o "$OUT/clip_$name" python3 -c "
 import torch, torchvor

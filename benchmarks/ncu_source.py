@@ -1,84 +1,81 @@
-"""Where a kernel's time goes, by source line: reads an Nsight Compute report
-(taken with --set full --import-source yes, from a build with -lineinfo),
-exports its source page as CSV and prints the lines with the most warp stall
-samples and the most executed instructions.
+"""Where a kernel's time goes, instruction by instruction: reads an Nsight
+Compute report (taken with --set full --import-source yes), exports its SASS
+source page as CSV and prints the instructions and the 25-instruction windows
+with the most warp stall samples, with how often each ran.
 
     python benchmarks/ncu_source.py REPORT.ncu-rep [--top 40] [--csv-dir DIR]
+
+The CSV of ncu 2025.3 has two columns per row and then the rest of the metrics
+as one Python-list string (its header row names them the same way).
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import csv
 import io
 import subprocess
 import sys
 from pathlib import Path
 
+STALLS = "Warp Stall Sampling (All Samples)"
+EXECUTED = "Instructions Executed"
+THREADS = "Avg. Threads Executed"
 
-def export(report: Path, view: str) -> list[dict]:
-    """The source page of `report` in `view` (cuda or sass) as CSV rows."""
-    command = ["ncu", "--import", str(report), "--page", "source", "--csv", "--print-source", view]
+
+def export(report: Path) -> str:
+    command = ["ncu", "--import", str(report), "--page", "source", "--csv", "--print-source", "sass"]
     result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0:
-        print(f"{' '.join(command)} failed ({result.returncode}):\n{result.stderr[-2000:]}", file=sys.stderr)
-        return []
-    text = result.stdout
-    start = text.find('"')  # skip any banner lines before the CSV header
-    return list(csv.DictReader(io.StringIO(text[start:])))
+        sys.exit(f"{' '.join(command)} failed ({result.returncode}):\n{result.stderr[-2000:]}")
+    return result.stdout
 
 
-def number(text: str) -> float:
-    try:
-        return float(text.replace(",", ""))
-    except (AttributeError, ValueError):
-        return 0.0
-
-
-def column(rows: list[dict], *words: str) -> str | None:
-    """The first column whose name contains every word (case-insensitive)."""
-    for name in rows[0].keys():
-        if all(w.lower() in name.lower() for w in words):
-            return name
-    return None
-
-
-def summarize(rows: list[dict], view: str, top: int) -> None:
-    if not rows:
-        return
-    print(f"## {view}: {len(rows)} rows; columns: {', '.join(rows[0].keys())}")
-    stall = column(rows, "Warp Stall Sampling", "All") or column(rows, "Stall Sampling")
-    executed = column(rows, "Instructions Executed") or column(rows, "Warp Instructions")
-    text = column(rows, "Source")
-    where = column(rows, "Line") or column(rows, "Address") or column(rows, "#")
-    for metric in (stall, executed):
-        if metric is None:
+def parse(text: str) -> list[dict]:
+    """Rows of the SASS source page, one dict per instruction."""
+    rows = [r for r in csv.reader(io.StringIO(text)) if r]
+    header = next(i for i, r in enumerate(rows) if r[0] == "Address")
+    names = rows[header][:3] + ast.literal_eval(rows[header][3])
+    out = []
+    for r in rows[header + 1:]:
+        if len(r) < 4 or not r[0].startswith("0x"):
             continue
-        total = sum(number(r[metric]) for r in rows) or 1.0
-        print(f"\n### top {top} by {metric} (total {total:,.0f})")
-        ranked = sorted(rows, key=lambda r: number(r[metric]), reverse=True)[:top]
-        for r in ranked:
-            share = 100.0 * number(r[metric]) / total
-            other = executed if metric == stall else stall
-            extra = f" | {other}: {number(r[other]):,.0f}" if other else ""
-            source = (r.get(text) or "").strip()[:110] if text else ""
-            print(f"{share:5.1f}% | {r.get(where, '') if where else ''} | {source}{extra}")
+        out.append(dict(zip(names, r[:3] + ast.literal_eval(r[3]))))
+    return out
+
+
+def number(text) -> float:
+    try:
+        return float(str(text).replace(",", ""))
+    except ValueError:
+        return 0.0
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("report", type=Path)
     parser.add_argument("--top", type=int, default=40)
-    parser.add_argument("--csv-dir", type=Path, default=None, help="also write <report>_<view>.csv here")
+    parser.add_argument("--csv-dir", type=Path, default=None, help="also write <report>_sass.csv here")
     args = parser.parse_args()
-    for view in ("cuda", "sass"):
-        rows = export(args.report, view)
-        if args.csv_dir is not None and rows:
-            path = args.csv_dir / f"{args.report.stem}_{view}.csv"
-            with open(path, "w", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=list(rows[0].keys()))
-                writer.writeheader()
-                writer.writerows(rows)
-        summarize(rows, view, args.top if view == "cuda" else args.top // 2)
+    text = export(args.report)
+    if args.csv_dir is not None:
+        (args.csv_dir / f"{args.report.stem}_sass.csv").write_text(text)
+    rows = parse(text)
+    stalls = [number(r[STALLS]) for r in rows]
+    total = sum(stalls) or 1.0
+    executed = sum(number(r[EXECUTED]) for r in rows)
+    print(f"{len(rows)} instructions, {total:,.0f} stall samples, {executed:,.0f} warp instructions executed")
+    print(f"\n### top {args.top} instructions by stall samples (index | % | executed | threads | SASS)")
+    for i in sorted(range(len(rows)), key=lambda i: stalls[i], reverse=True)[:args.top]:
+        r = rows[i]
+        print(f"{i:5d} | {100 * stalls[i] / total:4.1f}% | {number(r[EXECUTED]):12,.0f} | {number(r[THREADS]):4.1f} | "
+              f"{r['Source'].strip()}")
+    print("\n### 25-instruction windows with at least 1% of the samples (first index | % | most executed)")
+    for start in range(0, len(rows), 25):
+        share = sum(stalls[start:start + 25]) / total
+        if share >= 0.01:
+            most = max(number(r[EXECUTED]) for r in rows[start:start + 25])
+            print(f"{start:5d} | {100 * share:4.1f}% | {most:12,.0f}")
 
 
 if __name__ == "__main__":
