@@ -250,13 +250,8 @@ struct ConvexCell {
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
   TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
-    return set_triangle(t, a, b, c, plane[a], plane[b], plane[c]);
-  }
-  // The same with the three planes at hand.
-  TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c, const Plane<T>& pa,
-                                     const Plane<T>& pb, const Plane<T>& pc) {
     triangle[t] = pack(a, b, c);
-    const Vec3<T> position = intersect_planes(pa, pb, pc);
+    const Vec3<T> position = intersect_planes(plane[a], plane[b], plane[c]);
     const CachedVertex<T> v = {position, dot(position, position)};
     vertex[t] = v;
     return v;
@@ -301,23 +296,17 @@ struct ConvexCell {
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
     // triangles carries no meaning (the integrals are sums over them).
-    // The radius stays exact: the kept vertices' and the new ones'. Each
-    // step's loads (two planes, and the successor for the next step) are
-    // independent: one local-memory latency a step, where the successor,
-    // then three planes, were two. (Carrying plane `to` over to the next
-    // step would save a load but took 7 more registers.) The new plane is p.
+    // The radius stays exact: the kept vertices' and the new ones'.
     typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
-    uint8_t to = next[from];
     T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
-      const uint8_t after = next[to];  // on the boundary, so written by this clip
+      const uint8_t to = next[from];
       const int slot = e < removed ? holes.next() : num_triangles++;
-      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane), plane[from], plane[to], p).radius2;
+      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane)).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       largest = max_of(largest, v2);
       from = to;
-      to = after;
     }
     if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
     radius2 = largest;
@@ -347,33 +336,21 @@ struct ConvexCell {
   // Marks the vertices more than `threshold` (< 0) outside plane p; returns
   // whether any is, and the largest |vertex|^2 of the others (the radius
   // after the clip, the new vertices aside, with no second pass over the
-  // vertices). The GPU kernel is bound by local-memory latency: the vertices
-  // go in batches whose loads are all issued before any is used (one latency
-  // a batch; a plain loop used each load at once, one latency a vertex, ~40%
-  // of the stall samples on blue noise, ncu, H100). The mask words are built
-  // in registers.
+  // vertices). Independent iterations: several vertex loads in flight at
+  // once (the GPU kernel is bound by local-memory latency); the mask words
+  // are built in registers.
   TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped, T& kept_radius2) const {
-    constexpr int kBatch = 4;
     uint32_t any_clipped = 0u;
     kept_radius2 = T(0);
     TV_UNROLL
     for (int w = 0; w < kMaskWords; ++w) {
       uint32_t bits = 0u;
       const int end = min_of(num_triangles - 32 * w, 32);
-      for (int base = 0; base < end; base += kBatch) {
-        CachedVertex<T> batch[kBatch];
-        TV_UNROLL
-        for (int u = 0; u < kBatch; ++u) {
-          if (base + u < end) batch[u] = vertex[32 * w + base + u];
-        }
-        TV_UNROLL
-        for (int u = 0; u < kBatch; ++u) {
-          if (base + u < end) {
-            const bool outside = dot(p.normal, batch[u].position) + p.offset < threshold;
-            bits |= uint32_t(outside) << (base + u);
-            kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, batch[u].radius2);
-          }
-        }
+      for (int i = 0; i < end; ++i) {
+        const CachedVertex<T> v = vertex[32 * w + i];
+        const bool outside = dot(p.normal, v.position) + p.offset < threshold;
+        bits |= uint32_t(outside) << i;
+        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
       }
       clipped.word[w] = bits;
       any_clipped |= bits;
@@ -407,29 +384,11 @@ struct ConvexCell {
   // length in every lane.
   TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
-    // Gathered kBatch at a time, the loads before the stores (as in
-    // classify: a store right after its load waits out the load's latency).
-    constexpr int kBatch = 4;
     uint32_t removed[MAX_TRIANGLES];
     int count = 0;
     for (int w = 0; w < kMaskWords; ++w) {
-      for (uint32_t bits = clipped.get(w); bits != 0u;) {
-        uint32_t batch[kBatch];
-        int taken = 0;
-        TV_UNROLL
-        for (int u = 0; u < kBatch; ++u) {
-          if (bits != 0u) {
-            batch[u] = triangle[32 * w + lowest_bit(bits)];
-            bits &= bits - 1u;
-            ++taken;
-          }
-        }
-        TV_UNROLL
-        for (int u = 0; u < kBatch; ++u) {
-          if (u < taken) removed[count + u] = batch[u];
-        }
-        count += taken;
-      }
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
+        removed[count++] = triangle[32 * w + lowest_bit(bits)];
     }
     on_boundary.clear();
     PlaneSet targets;  // the planes boundary edges go to
