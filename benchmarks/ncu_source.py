@@ -5,13 +5,11 @@ with the most warp stall samples, with how often each ran.
 
     python benchmarks/ncu_source.py REPORT.ncu-rep [--top 40] [--csv-dir DIR]
 
-The CSV of ncu 2025.3 has two columns per row and then the rest of the metrics
-as one Python-list string (its header row names them the same way).
+(--csv-dir keeps the raw CSV: one row per instruction after a kernel-name row.)
 """
 from __future__ import annotations
 
 import argparse
-import ast
 import csv
 import io
 import subprocess
@@ -35,13 +33,8 @@ def parse(text: str) -> list[dict]:
     """Rows of the SASS source page, one dict per instruction."""
     rows = [r for r in csv.reader(io.StringIO(text)) if r]
     header = next(i for i, r in enumerate(rows) if r[0] == "Address")
-    names = rows[header][:3] + ast.literal_eval(rows[header][3])
-    out = []
-    for r in rows[header + 1:]:
-        if len(r) < 4 or not r[0].startswith("0x"):
-            continue
-        out.append(dict(zip(names, r[:3] + ast.literal_eval(r[3]))))
-    return out
+    names = rows[header]
+    return [dict(zip(names, r)) for r in rows[header + 1:] if r[0].startswith("0x")]
 
 
 def number(text) -> float:
