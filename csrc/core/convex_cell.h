@@ -379,9 +379,9 @@ struct ConvexCell {
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
   // reverse is not in R, as a successor map over plane ids (next[x] is valid
   // where `on_boundary` has x). False if the boundary is not one simple
-  // cycle (single_cycle). The removed triangles are gathered first, so that
-  // the search for reverse edges is a short branch-free loop of the same
-  // length in every lane.
+  // cycle (short_cycle_needs_no_walk, cycle_length). The removed triangles
+  // are gathered first, so that the search for reverse edges is a short
+  // branch-free loop of the same length in every lane.
   TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
     uint32_t removed[MAX_TRIANGLES];
