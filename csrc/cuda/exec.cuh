@@ -90,10 +90,10 @@ struct CudaExec {
   // warp diverge. The pass's k tells them apart, as the pilot (or Lloyd's
   // adapted k) picks it from the neighbours the cells need: blue noise gets
   // 19-24, perturbed grids ~48, white noise ~64. Voronoi wall time at 1M,
-  // thread / warp, H100 (crossover.py --op k): blue k=24 10.2 / 15.6 ms,
-  // k=32 10.8 / 16.3; perturbed k=48 30.8 / 24.0; white k=64 48.0 / 32.0
-  // (white and perturbed favour the warp at every k from 24 to 80, blue the
-  // thread at every k). From k = 40: a caller's k up to 39 on blue noise
+  // thread / warp, H100 (crossover.py --op k, 2fd1a58): blue k=24 10.2 /
+  // 12.2 ms, k=32 10.5 / 13.2; perturbed k=48 30.6 / 19.8; white k=64 47.9 /
+  // 26.7 (white and perturbed favour the warp at every k from 24 to 80, blue
+  // the thread at every k). From k = 40: a caller's k up to 39 on blue noise
   // stays on threads, and the pilot's k of both irregular kinds is above.
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
   static constexpr int64_t kCooperativeCellsFromK = 40;
