@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -32,6 +32,9 @@ for step in "${@:-smoke}"; do
             | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/lanes.log"
         done
       done ;;
+    residency)  # clip kernel against resident blocks per SM of one-thread-per-cell clipping
+      python3 benchmarks/sweep_cell_residency.py --device cuda --sizes ${RESIDENCY_SIZES:-1M,10M} 2>&1 \
+        | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/residency.log" ;;
     bench)
       python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered --methods torchvor,ckdtree 2>&1 | tee "$OUT/bench_knn.log"
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"

@@ -250,8 +250,13 @@ struct ConvexCell {
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
   TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
+    return set_triangle(t, a, b, c, plane[a], plane[b], plane[c]);
+  }
+  // The same with the planes of a, b, c already at hand.
+  TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c, const Plane<T>& pa,
+                                     const Plane<T>& pb, const Plane<T>& pc) {
     triangle[t] = pack(a, b, c);
-    const Vec3<T> position = intersect_planes(plane[a], plane[b], plane[c]);
+    const Vec3<T> position = intersect_planes(pa, pb, pc);
     const CachedVertex<T> v = {position, dot(position, position)};
     vertex[t] = v;
     return v;
@@ -296,17 +301,26 @@ struct ConvexCell {
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
     // triangles carries no meaning (the integrals are sums over them).
-    // The radius stays exact: the kept vertices' and the new ones'.
+    // The radius stays exact: the kept vertices' and the new ones'. Each
+    // boundary plane is loaded once (it is `to` of one new vertex and `from`
+    // of the next), and the new plane comes from registers. On the GPU a
+    // plane load is a scattered local access (local memory interleaves the
+    // threads' 4-byte words, so one thread's 16-byte plane spans up to four
+    // sectors): the fan's three plane loads a vertex were ~30% of the
+    // blue-noise clip kernel's L1 sector traffic (ncu, H100).
     typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
+    Plane<T> from_plane = plane[from];
     T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
+      const Plane<T> to_plane = plane[to];
       const int slot = e < removed ? holes.next() : num_triangles++;
-      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane)).radius2;
+      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane), from_plane, to_plane, p).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       largest = max_of(largest, v2);
       from = to;
+      from_plane = to_plane;
     }
     if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
     radius2 = largest;

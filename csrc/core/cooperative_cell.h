@@ -134,7 +134,7 @@ struct CooperativeCell {
     for (int e = lane; e < boundary; e += kLanes) {
       const uint32_t edge = a.edge[e];
       const int slot = e < removed ? int(a.hole[e]) : num_triangles + (e - removed);
-      const T v2 = set_triangle(slot, pack(edge & 0xffu, edge >> 8, uint32_t(new_plane))).radius2;
+      const T v2 = set_triangle(slot, pack(edge & 0xffu, edge >> 8, uint32_t(new_plane)), p).radius2;
       finite = finite && is_finite_value(v2);
       largest = max_of(largest, v2);
     }
@@ -182,9 +182,12 @@ struct CooperativeCell {
 
   // Store triangle t and its vertex (one lane); returns the vertex.
   TV_HD CachedVertex<T> set_triangle(int t, uint32_t corners) {
+    return set_triangle(t, corners, a.plane[corner(corners, 2)]);
+  }
+  // The same with the plane of its third corner at hand (the new plane of a fan).
+  TV_HD CachedVertex<T> set_triangle(int t, uint32_t corners, const Plane<T>& third) {
     a.triangle[t] = corners;
-    const Vec3<T> position =
-        intersect_planes(a.plane[corner(corners, 0)], a.plane[corner(corners, 1)], a.plane[corner(corners, 2)]);
+    const Vec3<T> position = intersect_planes(a.plane[corner(corners, 0)], a.plane[corner(corners, 1)], third);
     const CachedVertex<T> v = {position, dot(position, position)};
     a.vertex[t] = v;
     return v;

@@ -43,12 +43,12 @@ struct CpuExec {
     });
   }
 
-  // Like for_each, for the loops that carry the CPU time (clipping cells):
+  // Like for_each, for the loop that carries the CPU time (one cell per index):
   // on CPUs with AVX2 and FMA the loop runs from a copy compiled for them
   // (isa.h), where a * b + c may round once, as on the GPU. Not for code that
   // relies on separately rounded products (double-double's Dekker split).
   template <typename Functor>
-  static void for_each_fma(int64_t n, const Functor& functor) {
+  static void for_each_cell(int64_t n, const Functor& functor) {
     const Isa isa = cpu_isa();
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       run_range(isa, begin, end, functor);

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# A/B on the GPU machine: builds OLD_TREE (another revision's sources, e.g.
+# `git archive REV | tar -x -C ab_old`, left untracked so the device tool
+# carries it) and this tree side by side under /tmp, then runs
+# benchmarks/ab_time.py on each in turn, ROUNDS times. No pip install: each
+# build is imported through PYTHONPATH (the machine must not have torchvor
+# installed in editable mode, whose import hook would win).
+#   usage: bash benchmarks/ab_compare.sh OLD_TREE [ROUNDS] [NEW_LABEL]
+set -eu -o pipefail
+OLD_TREE=$(cd "$1" && pwd)
+ROUNDS=${2:-2}
+REPO=$(cd "$(dirname "$0")/.." && pwd)
+export CXX=/usr/bin/g++ CC=/usr/bin/gcc TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=8 TORCHVOR_FORCE_CUDA=1
+rm -rf /tmp/ab_old /tmp/ab_new && mkdir -p /tmp/ab_old /tmp/ab_new
+cp -r "$OLD_TREE"/. /tmp/ab_old/
+(cd "$REPO" && tar --exclude='./ab_*' --exclude=./.git --exclude='./build' -cf - .) | tar -xf - -C /tmp/ab_new
+for tree in old new; do
+  (cd /tmp/ab_$tree && python3 setup.py build_ext --inplace >/tmp/ab_$tree.log 2>&1) &
+done
+wait
+for tree in old new; do
+  ls /tmp/ab_$tree/torchvor/_C*.so >/dev/null 2>&1 || { tail -30 /tmp/ab_$tree.log; exit 1; }
+done
+for round in $(seq "$ROUNDS"); do
+  PYTHONPATH=/tmp/ab_old python3 "$REPO/benchmarks/ab_time.py" "old, round $round"
+  PYTHONPATH=/tmp/ab_new python3 "$REPO/benchmarks/ab_time.py" "${3:-new}, round $round"
+done

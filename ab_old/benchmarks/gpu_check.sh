@@ -1,0 +1,93 @@
+#!/usr/bin/env bash
+# One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
+# the CUDA smoke check and the benchmarks; logs go to $OUT.
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+set -u -o pipefail
+OUT=${OUT:-/tmp/torchvor_gpu}
+mkdir -p "$OUT"
+REPO=$(cd "$(dirname "$0")/.." && pwd)
+cd "$REPO"
+export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TORCHVOR_FORCE_CUDA=1
+# The image's default CXX (/opt/gcc/bin/g++) links libstdc++ statically into
+# the extension, and then every error message that formats a number segfaults.
+export CXX=/usr/bin/g++ CC=/usr/bin/gcc
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
+echo "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}" | tee -a "$OUT/gpu.txt"
+start=$(date +%s)
+python3 -m pip install --no-build-isolation --no-deps --no-index -e . >"$OUT/build.log" 2>&1 || { tail -60 "$OUT/build.log"; exit 1; }
+echo "build: $(( $(date +%s) - start )) s"
+status=0
+for step in "${@:-smoke}"; do
+  case "$step" in
+    smoke) python3 benchmarks/gpu_smoke.py --sizes 100000,1000000,10000000 2>&1 | tee "$OUT/smoke.log" || status=1 ;;
+    tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -15 || status=1 ;;
+    cudatests) python3 -m pytest -q -p no:cacheprovider -k cuda tests 2>&1 | tee "$OUT/cudatests.log" | grep -E "passed|failed|Error|assert" | tail -30 || status=1 ;;
+    lanes)  # thread or warp per item, one build: crossover tables (TORCHVOR_CELLS, TORCHVOR_KNN),
+            # then ROUNDS rounds of ab_time.py under each setting of AB ("default" = no variable)
+      python3 benchmarks/crossover.py 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
+      for round in $(seq ${ROUNDS:-2}); do
+        for setting in ${AB:-default TORCHVOR_KNN=thread}; do
+          if [ "$setting" = default ]; then assign=(); else assign=("$setting"); fi
+          env "${assign[@]}" python3 benchmarks/ab_time.py "$setting" 2>&1 \
+            | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/lanes.log"
+        done
+      done ;;
+    bench)
+      python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered --methods torchvor,ckdtree 2>&1 | tee "$OUT/bench_knn.log"
+      python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
+      python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
+      python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+    lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
+    ncusource)  # source-level profile of the clip kernels: a warp per cell on white noise (k=64) and on a
+                # perturbed grid (k=48), a thread per cell on blue noise (k=24); NCU_CASES picks some
+                # (default all); summaries and SASS CSVs in $OUT
+      python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
+import sys, torch, torchvor.samples
+sys.path.insert(0, "benchmarks")
+import common
+torch.save(torchvor.samples.white_noise(1_000_000, seed=1), "/tmp/white_1m.pt")
+torch.save(torchvor.samples.perturbed_grid(1_000_000, seed=1), "/tmp/perturbed_1m.pt")
+blue, _ = common.make_points("blue", 1_000_000, seed=0, dtype=torch.float32, device=torch.device("cuda"),
+                             cache_dir=common.Path("benchmarks/.cache"))
+torch.save(blue.cpu(), "/tmp/blue_1m.pt")
+PY
+      for case in "warp_white white 64 for_each_cooperative_kernel" "warp_perturbed perturbed 48 for_each_cooperative_kernel" \
+                  "thread_blue blue 24 for_each_kernel"; do
+        read -r name points k kernel <<<"$case"
+        [[ " ${NCU_CASES:-$name} " == *" $name "* ]] || continue
+        ncu --clock-control none --set full --import-source yes --kernel-name-base demangled \
+            -k "regex:${kernel}<.*ClipFunctor" --launch-count 1 -f -o "$OUT/clip_$name" python3 -c "
+import torch, torchvor
+p = torch.load('/tmp/${points}_1m.pt').cuda()
+torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=$k, on_failure='flag'); torch.cuda.synchronize()
+" 2>&1 | grep -v '^==PROF==' | tail -3
+        python3 benchmarks/ncu_source.py "$OUT/clip_$name.ncu-rep" --csv-dir "$OUT" 2>&1 | tee "$OUT/ncu_source_$name.log" | head -70
+        ncu --import "$OUT/clip_$name.ncu-rep" --page details 2>&1 | grep -E "Duration|Registers|Achieved Occupancy|Theoretical Occupancy|Issued Warp|Eligible|L1/TEX Hit|L2 Hit|Executed Ipc A|Avg. Active Threads|Local" | tee -a "$OUT/ncu_source_$name.log"
+        rm -f "$OUT/clip_$name.ncu-rep"  # the CSVs and summaries above hold what is needed
+      done ;;
+    sweep) python3 benchmarks/sweep_lloyd_k.py --device cuda --sizes 1M --repeats 20 --timeline 2>&1 | grep -v USDT | tee "$OUT/sweep.log" ;;
+    profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
+    ncu)
+      python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
+import torch, torchvor.samples
+torch.save(torchvor.samples.jittered_grid(1_000_000, seed=1), "/tmp/jittered_1m.pt")
+PY
+      ncu --clock-control none --kernel-name-base demangled -k regex:ClipFunctor --launch-count 1 --section SpeedOfLight --section WarpStateStats \
+          --section Occupancy --section LaunchStats --section MemoryWorkloadAnalysis --section SchedulerStats \
+          python3 -c "
+import torch, torchvor
+p = torch.load('/tmp/jittered_1m.pt').cuda()
+torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.synchronize()
+" 2>&1 | grep -v '^==PROF==' | tee "$OUT/ncu.log" | grep -E "Duration|Throughput|Registers|Achieved Occupancy|Theoretical Occupancy|Stall|Warp Cycles|Local|L1/TEX Hit|L2 Hit|Eligible|Issued|Block Limit|Dynamic|Static|Executed Ipc" ;;
+    sanitize)
+      for tool in memcheck racecheck; do
+        compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
+import torch, torchvor, torchvor.samples
+p = torchvor.samples.white_noise(100000, device='cuda')
+torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
+torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item())
+" 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
+      done ;;
+  esac
+done
+exit $status

@@ -1,0 +1,459 @@
+// A convex cell clipped by half-spaces, stored in dual form (paper §3.2-3.5).
+//
+// Coordinates are local to the seed (the seed is the origin), so that large
+// offsets cost no precision. Planes: dot(normal, x) + offset > 0 inside. A
+// vertex of the cell is a dual triangle (a, b, c) of the three plane ids that
+// meet there; its position is cached when the triangle is created. Triangles
+// are oriented consistently, which the integrals (§3.5) rely on.
+#pragma once
+
+#include "common.h"
+#include "double_double.h"
+#include "lanes.h"
+#include "status.h"
+
+namespace torchvor {
+namespace core {
+
+// Relative tolerance of the clipping predicate: a vertex is clipped only if it
+// lies more than tolerance * |r|^2 outside the bisector of a neighbour at r.
+// Points on a plane are kept, so cospherical configurations (lattices) and
+// near-coincident vertices resolve the same way from every triangle.
+template <typename T> struct ClipTolerance;
+template <> struct ClipTolerance<float> { static constexpr float value = 2e-6f; };
+template <> struct ClipTolerance<double> { static constexpr double value = 1e-13; };
+template <> struct ClipTolerance<DoubleDouble> { static constexpr double value = 1e-28; };
+
+// A vertex position and its squared distance to the seed, 16-byte aligned
+// (one vector load on the GPU for float).
+template <typename T>
+struct alignas(16) CachedVertex {
+  Vec3<T> position;
+  T radius2;
+};
+
+// The box [lo, hi] (relative to the seed): plane q of 6, and the corners
+// (plane ids packed as a | b << 8 | c << 16) of its dual triangle t of 8.
+// (No local arrays: indexed by a lane number they would go to local memory.)
+template <typename T>
+TV_HD Plane<T> box_plane(int q, Vec3<T> lo, Vec3<T> hi) {
+  const int axis = q >> 1;
+  const bool upper = (q & 1) != 0;  // the face at hi, facing -axis
+  const T sign = upper ? T(-1) : T(1);
+  const T low = axis == 0 ? lo.x : (axis == 1 ? lo.y : lo.z);
+  const T high = axis == 0 ? hi.x : (axis == 1 ? hi.y : hi.z);
+  return {{axis == 0 ? sign : T(0), axis == 1 ? sign : T(0), axis == 2 ? sign : T(0)},
+          upper ? high : -low};
+}
+TV_HD uint32_t box_triangle(int t) {
+  switch (t) {  // planes (a, b, c), one byte each, a lowest
+    case 0: return 0x000502u;
+    case 1: return 0x000305u;
+    case 2: return 0x020501u;
+    case 3: return 0x030105u;
+    case 4: return 0x000204u;
+    case 5: return 0x030004u;
+    case 6: return 0x010402u;
+    default: return 0x010304u;
+  }
+}
+
+// Intersection point of three planes (Cramer's rule).
+template <typename T>
+TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
+  const Vec3<T> bc = cross(pb.normal, pc.normal);
+  const Vec3<T> ca = cross(pc.normal, pa.normal);
+  const Vec3<T> ab = cross(pa.normal, pb.normal);
+  const T det = dot(pa.normal, bc);
+  const T scale = T(-1) / det;
+  return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
+}
+
+// The bisector of the seed (origin) and a neighbour at r (|r|^2 = r2), the
+// seed's side inside.
+template <typename T>
+TV_HD Plane<T> bisector_plane(Vec3<T> r, T r2) {
+  return {{-r.x, -r.y, -r.z}, T(0.5) * r2};
+}
+
+// Radius of security (paper §3.1): a neighbour farther than twice the cell's
+// radius cannot cut it, nor can any later (farther) neighbour.
+template <typename T>
+TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance) {
+  const T slack = T(1) + T(64) * tolerance;
+  return neighbor_dist2 > T(4) * slack * cell_radius2;
+}
+
+// Whether triangle `corners` (a, b, c) has the directed edge with code
+// from | to << 8: its edges (a, b), (b, c), (c, a).
+TV_HD bool has_edge(uint32_t corners, uint32_t code) {
+  return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
+         (((corners >> 16) | (corners & 0xffu) << 8) == code);
+}
+
+// Whether a removed region's boundary of `length` edges is one cycle without
+// walking it, given that its edges leave distinct planes, enter distinct
+// planes, and enter only planes they leave: then they form disjoint cycles.
+// None has one edge (an edge joins two planes) or two (edges a -> b and
+// b -> a of removed triangles are interior, not boundary edges), so up to 5
+// edges make a single cycle. Longer boundaries are walked. (The walk was a
+// tenth of the warp cell's stall samples on white noise, ncu, H100.)
+TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
+
+// Volume, first moment and second moment (integral of |x|^2) of a cell,
+// relative to the seed, summed over six signed tetrahedra per vertex (§3.5):
+// seed, foot of the seed on a plane, foot on an edge line, the vertex.
+// `unsigned_six_volume` sums the tetrahedra's absolute volumes: its ratio to
+// the volume measures the cancellation, hence the rounding error. The feet
+// of a face far from the seed can lie far outside it (a needle cell reaching
+// a box face): large tetrahedra then cancel (ratio 3e6 on a 1e-11 needle,
+// against at most ~7 on white noise).
+template <typename T>
+struct CellMoments {
+  T six_volume;           // 6 * volume
+  T unsigned_six_volume;  // 6 * sum of |tetrahedron volume|
+  Vec3<T> m1;             // 24 * first moment
+  T m2;                   // 120 * second moment
+
+  TV_HD static CellMoments zero() { return {T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
+
+  // The six tetrahedra of vertex v, where planes a, b, c (in the triangle's
+  // orientation) meet.
+  TV_HD void add_vertex(const Plane<T> (&planes)[3], Vec3<T> v) {
+    const Vec3<T> feet[3] = {plane_foot(planes[0]), plane_foot(planes[1]), plane_foot(planes[2])};
+    for (int e = 0; e < 3; ++e) {
+      const int f = (e + 1) % 3;
+      const Vec3<T> edge_foot = line_foot(planes[e], planes[f]);
+      add_tetrahedron(feet[e], edge_foot, v, T(1));
+      add_tetrahedron(feet[f], edge_foot, v, T(-1));
+    }
+  }
+
+  TV_HD void finish(T& volume, Vec3<T>& first_moment, T& second_moment, T& unsigned_volume) const {
+    volume = six_volume / T(6);
+    unsigned_volume = unsigned_six_volume / T(6);
+    first_moment = (T(1) / T(24)) * m1;
+    second_moment = m2 / T(120);
+  }
+
+  // Orthogonal projection of the seed (origin) onto a plane.
+  TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
+    return (-p.offset / dot(p.normal, p.normal)) * p.normal;
+  }
+
+  // Orthogonal projection of the seed onto the line where planes a, b meet.
+  TV_HD static Vec3<T> line_foot(const Plane<T>& pa, const Plane<T>& pb) {
+    const Vec3<T> direction = cross(pa.normal, pb.normal);
+    const T scale = T(-1) / dot(direction, direction);
+    return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
+  }
+
+  // Signed tetrahedron (seed, f, e, v). Integral of |x|^2 over a tetrahedron
+  // with a vertex at the origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2).
+  TV_HD void add_tetrahedron(Vec3<T> f, Vec3<T> e, Vec3<T> v, T sign) {
+    const T six_vol = sign * det3(f, e, v);
+    const Vec3<T> sum = f + e + v;
+    six_volume += six_vol;
+    unsigned_six_volume += six_vol < T(0) ? -six_vol : six_vol;
+    m1 = m1 + six_vol * sum;
+    m2 += six_vol * (dot(f, f) + dot(e, e) + dot(v, v) + dot(sum, sum));
+  }
+};
+
+// A small bit set (one bit per triangle slot, or per plane). Every word is
+// addressed with a compile-time index (unrolled loops, selects): on the GPU
+// the set stays in registers, where a dynamically indexed array would go to
+// local memory.
+template <int WORDS>
+struct BitSet {
+  static constexpr int kWords = WORDS;
+  uint32_t word[WORDS];
+
+  TV_HD void clear() {
+    TV_UNROLL
+    for (int i = 0; i < WORDS; ++i) word[i] = 0u;
+  }
+  TV_HD void set(int t) {
+    const uint32_t bit = 1u << (t & 31);
+    TV_UNROLL
+    for (int i = 0; i < WORDS; ++i) word[i] |= ((t >> 5) == i) ? bit : 0u;
+  }
+
+  TV_HD uint32_t get(int w) const {  // word w, w in [0, WORDS)
+    uint32_t value = word[0];
+    TV_UNROLL
+    for (int i = 1; i < WORDS; ++i) value = (w == i) ? word[i] : value;
+    return value;
+  }
+  TV_HD bool test(int t) const { return (get(t >> 5) >> (t & 31)) & 1u; }
+  TV_HD int count() const {
+    int total = 0;
+    TV_UNROLL
+    for (int i = 0; i < WORDS; ++i) total += bit_count(word[i]);
+    return total;
+  }
+
+  // Walks the set bits in increasing order.
+  struct Cursor {
+    BitSet mask;  // a copy: no pointer that could pin the mask to memory
+    int w;
+    uint32_t bits;  // bits of word w not visited yet
+    TV_HD int next() {  // requires a set bit left
+      while (bits == 0u) bits = mask.get(++w);
+      const int t = 32 * w + lowest_bit(bits);
+      bits &= bits - 1u;
+      return t;
+    }
+  };
+  TV_HD Cursor cursor() const { return {*this, 0, word[0]}; }
+};
+
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
+struct ConvexCell {
+  using Scalar = T;
+  using Lanes = SingleLane;  // one thread computes the cell
+  static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
+  static constexpr uint8_t kNone = 255;
+  static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
+  using Mask = BitSet<kMaskWords>;
+  using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
+
+  Plane<T> plane[MAX_PLANES];
+  uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
+  CachedVertex<T> vertex[MAX_TRIANGLES];  // vertex of triangle t
+  int32_t num_planes;
+  int32_t num_triangles;
+  T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
+  T tolerance;       // relative tolerance of the clipping predicate
+  int max_band_widenings;  // retries of an inconsistent clip with a 10x wider band
+  int8_t status;
+
+  TV_HD Lanes group() const { return {}; }
+
+  TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
+  TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
+
+  // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
+  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
+    for (int q = 0; q < 6; ++q) plane[q] = box_plane(q, lo, hi);
+    num_planes = 6;
+    num_triangles = 8;
+    radius2 = T(0);
+    for (int t = 0; t < 8; ++t) {
+      const uint32_t corners = box_triangle(t);
+      radius2 = max_of(radius2, set_triangle(t, corner(corners, 0), corner(corners, 1), corner(corners, 2)).radius2);
+    }
+    tolerance = relative_tolerance;
+    max_band_widenings = band_widenings;
+    status = kSuccess;
+  }
+
+  // Store triangle t = (a, b, c) and its vertex; returns the vertex.
+  TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
+    triangle[t] = pack(a, b, c);
+    const Vec3<T> position = intersect_planes(plane[a], plane[b], plane[c]);
+    const CachedVertex<T> v = {position, dot(position, position)};
+    vertex[t] = v;
+    return v;
+  }
+
+  // Whether no neighbour this far (or farther) can cut the cell.
+  TV_HD bool security_radius_reached(T neighbor_dist2) const {
+    return beyond_security_radius(neighbor_dist2, radius2, tolerance);
+  }
+
+  // Clip by the bisector of the seed (origin) and a neighbour at `r` (paper
+  // §3.3, Alg. 3). Returns false and sets `status` when the cell cannot be
+  // represented (array overflow) or the predicates were inconsistent.
+  TV_HD bool clip_by_bisector(Vec3<T> r) {
+    const T r2 = dot(r, r);
+    const Plane<T> p = bisector_plane(r, r2);
+    // Vertices within the tolerance band of the plane are kept. If the removed
+    // region is then not a disc (inconsistent predicates: vertices of nearly
+    // parallel planes, computed with errors beyond the band), fail, or in the
+    // last-resort pass widen the band for this plane only, tenfold at a time:
+    // far enough from the plane, every classification agrees with the exact
+    // one, and the volume error stays of the order of the band.
+    Mask clipped;
+    T kept_radius2;  // the largest |vertex|^2 of the vertices the plane keeps
+    uint8_t next[MAX_PLANES];
+    PlaneSet on_boundary;
+    int boundary_length = 0;
+    uint8_t start = kNone;
+    T band = tolerance;
+    for (int attempt = 0;; ++attempt, band = band * T(10)) {
+      if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
+      if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
+      if (num_planes == MAX_PLANES) compact_planes();
+      if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
+      if (removed_boundary(clipped, next, on_boundary, boundary_length, start)) break;
+    }
+    const int removed = clipped.count();
+    if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
+    const int new_plane = num_planes++;
+    plane[new_plane] = p;
+    // Close the hole with a fan of triangles (s, t, p) along the boundary
+    // cycle, written into the removed triangles' slots first and appended
+    // after the last one beyond that: no kept triangle moves. The order of
+    // triangles carries no meaning (the integrals are sums over them).
+    // The radius stays exact: the kept vertices' and the new ones'.
+    typename Mask::Cursor holes = clipped.cursor();
+    uint8_t from = start;
+    T largest = kept_radius2;
+    for (int e = 0; e < boundary_length; ++e) {
+      const uint8_t to = next[from];
+      const int slot = e < removed ? holes.next() : num_triangles++;
+      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane)).radius2;
+      if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
+      largest = max_of(largest, v2);
+      from = to;
+    }
+    if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
+    radius2 = largest;
+    return true;
+  }
+
+  // Volume, first moment and second moment (integral of |x|^2) of the cell,
+  // all relative to the seed, and the cancellation measure (CellMoments).
+  TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
+                       T& unsigned_volume) const {
+    CellMoments<T> moments = CellMoments<T>::zero();
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t corners = triangle[t];
+      const Plane<T> planes[3] = {plane[corner(corners, 0)], plane[corner(corners, 1)],
+                                  plane[corner(corners, 2)]};
+      moments.add_vertex(planes, vertex[t].position);
+    }
+    moments.finish(volume, first_moment, second_moment, unsigned_volume);
+  }
+
+ private:
+  TV_HD bool fail(int8_t code) {
+    status = code;
+    return false;
+  }
+
+  // Marks the vertices more than `threshold` (< 0) outside plane p; returns
+  // whether any is, and the largest |vertex|^2 of the others (the radius
+  // after the clip, the new vertices aside, with no second pass over the
+  // vertices). Independent iterations: several vertex loads in flight at
+  // once (the GPU kernel is bound by local-memory latency); the mask words
+  // are built in registers.
+  TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped, T& kept_radius2) const {
+    uint32_t any_clipped = 0u;
+    kept_radius2 = T(0);
+    TV_UNROLL
+    for (int w = 0; w < kMaskWords; ++w) {
+      uint32_t bits = 0u;
+      const int end = min_of(num_triangles - 32 * w, 32);
+      for (int i = 0; i < end; ++i) {
+        const CachedVertex<T> v = vertex[32 * w + i];
+        const bool outside = dot(p.normal, v.position) + p.offset < threshold;
+        bits |= uint32_t(outside) << i;
+        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
+      }
+      clipped.word[w] = bits;
+      any_clipped |= bits;
+    }
+    return any_clipped != 0u;
+  }
+
+  // Fewer new triangles than removed ones: move kept triangles from the end
+  // into the `count` holes left, lowest hole first, and shorten the list.
+  TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& clipped) {
+    int last = num_triangles - 1;  // the highest slot that may still hold a kept triangle
+    for (; count > 0; --count) {
+      const int hole = holes.next();
+      while (last > hole && clipped.test(last)) --last;  // drop holes at the end
+      if (last <= hole) {  // nothing kept above this hole: the list ends before it
+        last = min_of(last, hole - 1);
+        break;
+      }
+      triangle[hole] = triangle[last];
+      vertex[hole] = vertex[last];
+      --last;
+    }
+    num_triangles = last + 1;
+  }
+
+  // Boundary of the removed region R (Alg. 4): the directed edges of R whose
+  // reverse is not in R, as a successor map over plane ids (next[x] is valid
+  // where `on_boundary` has x). False if the boundary is not one simple
+  // cycle (short_cycle_needs_no_walk, cycle_length). The removed triangles
+  // are gathered first, so that the search for reverse edges is a short
+  // branch-free loop of the same length in every lane.
+  TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
+                              int& length, uint8_t& start) const {
+    uint32_t removed[MAX_TRIANGLES];
+    int count = 0;
+    for (int w = 0; w < kMaskWords; ++w) {
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
+        removed[count++] = triangle[32 * w + lowest_bit(bits)];
+    }
+    on_boundary.clear();
+    PlaneSet targets;  // the planes boundary edges go to
+    targets.clear();
+    length = 0;
+    start = kNone;
+    for (int i = 0; i < count; ++i) {
+      const uint32_t corners = removed[i];
+      for (int e = 0; e < 3; ++e) {
+        const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+        const uint32_t reverse = uint32_t(to) | uint32_t(from) << 8;
+        bool interior = false;
+        for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
+        if (interior) continue;
+        // A plane twice on the boundary: not a simple cycle.
+        if (on_boundary.test(from) || targets.test(to)) return false;
+        on_boundary.set(from);
+        targets.set(to);
+        next[from] = to;
+        start = from;
+        ++length;
+      }
+    }
+    if (length < 3) return false;
+    TV_UNROLL
+    for (int w = 0; w < PlaneSet::kWords; ++w) {
+      if (targets.word[w] != on_boundary.word[w]) return false;  // an edge leads off the boundary
+    }
+    return short_cycle_needs_no_walk(length) || cycle_length(next, on_boundary, start) == length;
+  }
+
+  // Edges on the way from `start` back to itself; stops early at a dead end.
+  TV_HD static int cycle_length(const uint8_t* next, const PlaneSet& on_boundary, uint8_t start) {
+    int length = 0;
+    uint8_t from = start;
+    do {
+      from = next[from];
+      ++length;
+    } while (from != start && on_boundary.test(from) && length <= MAX_PLANES);
+    return from == start ? length : -1;
+  }
+
+  // Drop planes that no vertex uses any more and renumber the rest, so that a
+  // long clipping sequence does not overflow the plane array with dead planes.
+  TV_HD void compact_planes() {
+    uint8_t renumber[MAX_PLANES];
+    for (int q = 0; q < num_planes; ++q) renumber[q] = kNone;
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t corners = triangle[t];
+      for (int e = 0; e < 3; ++e) renumber[corner(corners, e)] = 0;
+    }
+    int live = 0;
+    for (int q = 0; q < num_planes; ++q) {
+      if (renumber[q] == kNone) continue;
+      plane[live] = plane[q];
+      renumber[q] = static_cast<uint8_t>(live++);
+    }
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t corners = triangle[t];
+      triangle[t] = pack(renumber[corner(corners, 0)], renumber[corner(corners, 1)],
+                         renumber[corner(corners, 2)]);
+    }
+    num_planes = live;
+  }
+};
+
+}  // namespace core
+}  // namespace torchvor

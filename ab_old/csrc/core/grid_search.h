@@ -1,0 +1,429 @@
+// k-nearest-neighbour search on a uniform grid (paper §2, Alg. 1).
+//
+// Points are sorted by grid cell; a query visits cells in concentric rings
+// (Chebyshev shells) around its own cell, keeps the k best candidates in a
+// max-heap and stops once no point outside the visited cube can beat the
+// heap's worst candidate. Ragged batches: every batch element has its own grid
+// (origin, cell size, dims), all stored in one cell-start array.
+#pragma once
+
+#include <cmath>
+#include <cstring>
+#include <type_traits>
+
+#if !defined(__CUDA_ARCH__)
+#include <algorithm>
+#endif
+
+#include "common.h"
+#include "key_ranks.h"
+
+namespace torchvor {
+namespace core {
+
+template <typename T>
+struct GridView {
+  const T* sorted_points;        // (N, 3) points in cell order
+  const int32_t* sorted_index;   // (N,) original index of each sorted point
+  const int32_t* cell_start;     // (num_cells + 1,) first sorted point of each cell
+  const T* origin;               // (B, 3) low corner of each batch element's grid
+  const T* cell_size;            // (B,) edge length of the cubic grid cells
+  const int32_t* dims;           // (B, 3) number of cells along x, y, z
+  const int32_t* cell_offset;    // (B,) id of each batch element's first cell
+};
+
+// Cell coordinate of x along one axis, clamped into the grid.
+template <typename T>
+TV_HD int32_t grid_coordinate(T x, T origin, T cell_size, int32_t dim) {
+  const T u = (x - origin) / cell_size;
+  if (!(u > T(0))) return 0;  // also catches NaN
+  if (u >= T(dim)) return dim - 1;
+  const int32_t c = static_cast<int32_t>(u);
+  return c < dim ? c : dim - 1;
+}
+
+// Distance along one axis from x to the slab of grid cells [c, c + 1),
+// reduced by `margin` (points are assigned to cells by a rounded division).
+template <typename T>
+TV_HD T slab_gap(T x, T origin, T cell_size, int32_t c, T margin) {
+  const T low = origin + T(c) * cell_size;
+  const T gap = max_of(low - x, x - (low + cell_size));
+  return max_of(gap - margin, T(0));
+}
+
+TV_HD float sqrt_of(float x) { return x > 0.0f ? sqrtf(x) : 0.0f; }
+TV_HD double sqrt_of(double x) { return x > 0.0 ? sqrt(x) : 0.0; }
+
+// A candidate neighbour as one comparable key, ordered by (squared distance,
+// index) so that ties go to the lower index. For float32 the two fit in one
+// uint64 (non-negative float bits sort like unsigned integers): one integer
+// compare per heap step. float64 keeps the pair.
+template <typename T> struct HeapKey;
+
+template <> struct HeapKey<float> {
+  uint64_t bits;
+  TV_HD static HeapKey make(float dist2, int32_t index) {
+    uint32_t d;
+    memcpy(&d, &dist2, sizeof d);
+    return {(uint64_t(d) << 32) | uint32_t(index)};
+  }
+  TV_HD float dist2() const {
+    const uint32_t d = uint32_t(bits >> 32);
+    float f;
+    memcpy(&f, &d, sizeof f);
+    return f;
+  }
+  TV_HD int32_t index() const { return int32_t(uint32_t(bits)); }
+  TV_HD bool operator<(const HeapKey& other) const { return bits < other.bits; }
+  // `when ? a : b` as bit operations: host compilers turn the ternary into an
+  // unpredictable branch here.
+  TV_HD static HeapKey select(bool when, HeapKey a, HeapKey b) {
+    const uint64_t mask = uint64_t(0) - uint64_t(when);
+    return {(a.bits & mask) | (b.bits & ~mask)};
+  }
+};
+
+template <> struct HeapKey<double> {
+  double d;
+  int32_t i;
+  TV_HD static HeapKey make(double dist2, int32_t index) { return {dist2, index}; }
+  TV_HD double dist2() const { return d; }
+  TV_HD int32_t index() const { return i; }
+  TV_HD bool operator<(const HeapKey& other) const {
+    return d < other.d || (d == other.d && i < other.i);
+  }
+  TV_HD static HeapKey select(bool when, HeapKey a, HeapKey b) { return when ? a : b; }
+};
+
+// Max-heap of candidate keys: the root is the worst of the k best so far.
+// Four children per node: half the depth of a binary heap, and the children
+// of a node share a cache line on the host. The larger-child choice is a
+// select, not a branch; replacing the root costs ~30% less than with a
+// binary heap (CPU, 1M points, k=35).
+template <typename T>
+struct NeighborHeap {
+  static constexpr int32_t kArity = 4;
+
+  StridedArray<HeapKey<T>> key;  // capacity slots
+  int32_t capacity;
+  int32_t size;
+
+  TV_HD bool full() const { return size == capacity; }
+  TV_HD T worst() const { return key[0].dist2(); }
+
+  // Add a candidate to a heap that is not full yet (sift up).
+  TV_HD void push(HeapKey<T> item) {
+    int32_t e = size++;
+    while (e > 0) {
+      const int32_t parent = (e - 1) / kArity;
+      const HeapKey<T> above = key[parent];
+      if (!(above < item)) break;
+      key[e] = above;
+      e = parent;
+    }
+    key[e] = item;
+  }
+
+  // Replace the root (the worst key) by a better `item`.
+  TV_HD void replace_root(HeapKey<T> item) { sift_down(0, size, item); }
+
+  // Place `item` at position e of the heap [0, n) and restore heap order.
+  TV_HD void sift_down(int32_t e, int32_t n, HeapKey<T> item) {
+    for (int32_t first = kArity * e + 1; first < n; first = kArity * e + 1) {
+      int32_t child = first;
+      HeapKey<T> larger = key[first];
+      TV_UNROLL
+      for (int32_t c = first + 1; c < first + kArity; ++c) {
+        if (c < n) {
+          const HeapKey<T> other = key[c];
+          const bool bigger = larger < other;
+          larger = HeapKey<T>::select(bigger, other, larger);
+          child += (c - child) & -int32_t(bigger);
+        }
+      }
+      if (!(item < larger)) break;
+      key[e] = larger;
+      e = child;
+    }
+    key[e] = item;
+  }
+
+  // write_sorted by a group of lanes over a heap they share: each lane
+  // places its keys at their ranks (keys are distinct), so no lane sorts.
+  template <typename index_t, typename Lanes>
+  TV_HD void write_ranked(T* dist2_out, index_t* index_out, int64_t stride, T infinity,
+                          Lanes lanes) const {
+    for (int32_t e = lanes.index(); e < capacity; e += Lanes::kCount) {
+      int32_t at = e;
+      HeapKey<T> item = HeapKey<T>::make(infinity, -1);
+      if (e < size) {
+        item = key[e];
+        at = 0;
+        for (int32_t m = 0; m < size; ++m) at += int32_t(key[m] < item);
+      }
+      index_out[at * stride] = item.index();
+      if (dist2_out) dist2_out[at * stride] = item.dist2();
+    }
+  }
+
+  // Write the keys in increasing order as (dist2, index), padded with
+  // (inf, -1), element e at e * stride; `dist2_out` may be null. The heap is
+  // consumed. Host: an AVX2 rank count for float keys (key_ranks.h), else
+  // std::sort; device: heap sort in place (no extra memory).
+  template <typename index_t>
+  TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
+    const auto write = [&](int32_t e, const HeapKey<T>& item) {
+      index_out[e * stride] = item.index();
+      if (dist2_out) dist2_out[e * stride] = item.dist2();
+    };
+    bool ranked = false;
+#if defined(TORCHVOR_HAS_KEY_RANKS) && !defined(__CUDA_ARCH__)
+    if constexpr (std::is_same<T, float>::value) {
+      if (key.stride == 1 && size <= kMaxRankedKeys && cpu_has_avx2()) {
+        // float keys are one uint64 with a clear top bit: distinct and signed-comparable
+        int32_t rank[kMaxRankedKeys];
+        key_ranks(reinterpret_cast<const int64_t*>(key.data), size, rank);
+        for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
+        ranked = true;
+      }
+    }
+#endif
+    if (!ranked) {
+#if !defined(__CUDA_ARCH__)
+      if (key.stride == 1) {
+        std::sort(key.data, key.data + size);
+      } else
+#endif
+      {
+        for (int32_t n = size - 1; n > 0; --n) {
+          const HeapKey<T> top = key[0];
+          sift_down(0, n, key[n]);
+          key[n] = top;
+        }
+      }
+      for (int32_t e = 0; e < size; ++e) write(e, key[e]);
+    }
+    for (int32_t e = size; e < capacity; ++e) {
+      index_out[e * stride] = -1;
+      if (dist2_out) dist2_out[e * stride] = infinity;
+    }
+  }
+};
+
+// Offer every point of the sorted range [begin, end) to the heap. Two
+// phases: fill the heap, then compare each candidate with the worst key kept
+// in a register (most candidates stop there).
+template <typename T>
+TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3<T> query,
+                       int32_t excluded, NeighborHeap<T>& heap) {
+  const auto candidate = [&](int32_t s, int32_t original) {
+    return HeapKey<T>::make(squared_distance(load_vec3(grid.sorted_points + 3 * s), query), original);
+  };
+  int32_t s = begin;
+  for (; s < end && !heap.full(); ++s) {
+    const int32_t original = grid.sorted_index[s];
+    if (original != excluded) heap.push(candidate(s, original));
+  }
+  if (s == end) return;
+  HeapKey<T> worst = heap.key[0];
+  for (; s < end; ++s) {
+    const int32_t original = grid.sorted_index[s];
+    const HeapKey<T> item = candidate(s, original);
+    // The excluded point (the query itself, at distance 0) passes the first test.
+    if (item < worst && original != excluded) {
+      heap.replace_root(item);
+      worst = heap.key[0];
+    }
+  }
+}
+
+// Two ranges [begin, end) of sorted points (either may be empty).
+struct RowRanges {
+  int32_t begin[2], end[2];
+};
+
+// One query's ring search (Chebyshev shells of grid cells around its own
+// cell, in its batch element's grid): which points of a shell's row to
+// offer, and when to stop. The thread and the cooperative searches share it.
+template <typename T>
+struct Rings {
+  Vec3<T> query, origin;
+  T h;       // cell edge
+  T margin;  // points are assigned to cells by a rounded division: the ring
+             // bounds keep this margin so they never overestimate a distance
+  int32_t dim[3], cell[3], offset;
+
+  TV_HD Rings(const GridView<T>& grid, int64_t batch, Vec3<T> q)
+      : query(q), origin(load_vec3(grid.origin + 3 * batch)), h(grid.cell_size[batch]),
+        margin(h * T(1e-3)), offset(grid.cell_offset[batch]) {
+    TV_UNROLL
+    for (int a = 0; a < 3; ++a) dim[a] = grid.dims[3 * batch + a];
+    cell[0] = grid_coordinate(query.x, origin.x, h, dim[0]);
+    cell[1] = grid_coordinate(query.y, origin.y, h, dim[1]);
+    cell[2] = grid_coordinate(query.z, origin.z, h, dim[2]);
+  }
+
+  // Shell r's cells along axis a, clamped to the grid: [low(a, r), high(a, r)].
+  TV_HD int32_t low(int a, int32_t r) const { return max_of(cell[a] - r, 0); }
+  TV_HD int32_t high(int a, int32_t r) const { return min_of(cell[a] + r, dim[a] - 1); }
+
+  TV_HD T gap_z(int32_t z) const { return slab_gap(query.z, origin.z, h, z, margin); }
+
+  // The points of row (z, y) of shell r that may beat the heap's worst
+  // candidate (strictly: an equally far point with a lower index would still
+  // win): on a face of the shell, the row's cells within reach (contiguous
+  // in sorted order); inside it, the row's two end cells.
+  TV_HD RowRanges row(int32_t r, int32_t z, int32_t y, T gap_z, const int32_t* cell_start,
+                      const NeighborHeap<T>& heap) const {
+    RowRanges out = {{0, 0}, {0, 0}};
+    const T gap_y = slab_gap(query.y, origin.y, h, y, margin);
+    const T gap_yz2 = gap_z * gap_z + gap_y * gap_y;
+    if (heap.full() && gap_yz2 > heap.worst()) return out;
+    const int32_t row_start = offset + (z * dim[1] + y) * dim[0];
+    const int32_t cx = cell[0];
+    if (z == cell[2] - r || z == cell[2] + r || y == cell[1] - r || y == cell[1] + r) {
+      int32_t xa = low(0, r), xb = high(0, r);
+      if (heap.full()) {
+        const T reach = sqrt_of(heap.worst() - gap_yz2) + margin;
+        xa = max_of(xa, grid_coordinate(query.x - reach, origin.x, h, dim[0]));
+        xb = min_of(xb, grid_coordinate(query.x + reach, origin.x, h, dim[0]));
+      }
+      if (xa <= xb) {
+        out.begin[0] = cell_start[row_start + xa];
+        out.end[0] = cell_start[row_start + xb + 1];
+      }
+    } else {  // r >= 1: two distinct end cells
+      TV_UNROLL
+      for (int side = 0; side < 2; ++side) {
+        const int32_t x = side == 0 ? cx - r : cx + r;
+        if (x < 0 || x >= dim[0]) continue;
+        const T gap_x = slab_gap(query.x, origin.x, h, x, margin);
+        if (heap.full() && gap_x * gap_x + gap_yz2 > heap.worst()) continue;
+        out.begin[side] = cell_start[row_start + x];
+        out.end[side] = cell_start[row_start + x + 1];
+      }
+    }
+    return out;
+  }
+
+  // Whether shell r was the last one: no point outside its cube can enter
+  // the heap (or the cube covers the whole grid).
+  TV_HD bool exhausted(int32_t r, const NeighborHeap<T>& heap, T infinity) const {
+    const T q[3] = {query.x, query.y, query.z};
+    const T o[3] = {origin.x, origin.y, origin.z};
+    T bound = infinity;  // distance to the nearest cell outside the cube
+    bool covers_grid = true;
+    TV_UNROLL
+    for (int a = 0; a < 3; ++a) {
+      if (cell[a] - r > 0) {
+        covers_grid = false;
+        bound = min_of(bound, q[a] - (o[a] + T(cell[a] - r) * h));
+      }
+      if (cell[a] + r < dim[a] - 1) {
+        covers_grid = false;
+        bound = min_of(bound, (o[a] + T(cell[a] + r + 1) * h) - q[a]);
+      }
+    }
+    if (covers_grid) return true;
+    bound -= margin;
+    return heap.full() && bound > T(0) && heap.worst() < bound * bound;
+  }
+};
+
+// Fill `heap` with the k nearest points of batch element `batch` to `query`
+// (excluding the point whose original index is `excluded`, or none if -1).
+// One thread per query.
+template <typename T>
+TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int32_t excluded,
+                      NeighborHeap<T>& heap, T infinity) {
+  heap.size = 0;
+  const Rings<T> rings(grid, batch, query);
+  for (int32_t r = 0;; ++r) {
+    for (int32_t z = rings.low(2, r); z <= rings.high(2, r); ++z) {
+      // A whole slab of rows beyond the worst candidate: skip it.
+      const T gap_z = rings.gap_z(z);
+      if (heap.full() && gap_z * gap_z > heap.worst()) continue;
+      for (int32_t y = rings.low(1, r); y <= rings.high(1, r); ++y) {
+        const RowRanges ranges = rings.row(r, z, y, gap_z, grid.cell_start, heap);
+        TV_UNROLL
+        for (int i = 0; i < 2; ++i) {
+          if (ranges.begin[i] < ranges.end[i])
+            offer_range(grid, ranges.begin[i], ranges.end[i], query, excluded, heap);
+        }
+      }
+    }
+    if (rings.exhausted(r, heap, infinity)) break;
+  }
+}
+
+// knn_search by a group of lanes (lanes.h): the rows of each shell are
+// spread over the lanes, so their cell and point loads are in flight
+// together, where one thread per query waits on them one after another (a
+// pass over few queries takes as long as its slowest query). The heap lives
+// in memory the lanes share; lane 0 inserts the candidates the lanes found
+// (passed through `offered`, one slot per lane). Same keys, same pruning
+// bounds: the result equals knn_search's.
+template <typename T, typename Lanes>
+TV_HD void knn_search_cooperative(const GridView<T>& grid, int64_t batch, Vec3<T> query,
+                                  int32_t excluded, NeighborHeap<T>& heap,
+                                  StridedArray<HeapKey<T>> offered, T infinity, Lanes lanes) {
+  heap.size = 0;  // every lane keeps the same count
+  const Rings<T> rings(grid, batch, query);
+  const int lane = lanes.index();
+  for (int32_t r = 0;; ++r) {
+    const int32_t z0 = rings.low(2, r), y0 = rings.low(1, r);
+    const int32_t ny = rings.high(1, r) - y0 + 1;
+    const int32_t rows = (rings.high(2, r) - z0 + 1) * ny;
+    for (int32_t first = 0; first < rows; first += Lanes::kCount) {
+      RowRanges mine = {{0, 0}, {0, 0}};
+      const int32_t p = first + lane;
+      if (p < rows) {
+        const int32_t z = z0 + p / ny, y = y0 + p % ny;
+        mine = rings.row(r, z, y, rings.gap_z(z), grid.cell_start, heap);
+      }
+      // Each lane walks its ranges; every step, the lanes' candidates go
+      // to lane 0, in lane order.
+      int32_t s = mine.begin[0], end = mine.end[0];
+      bool second = false;
+      for (;;) {
+        if (s >= end && !second) {
+          s = mine.begin[1];
+          end = mine.end[1];
+          second = true;
+        }
+        const bool has_point = s < end;
+        if (!lanes.any(has_point)) break;
+        HeapKey<T> item = HeapKey<T>::make(T(0), -1);
+        bool candidate = false;
+        if (has_point) {
+          const int32_t original = grid.sorted_index[s];
+          item = HeapKey<T>::make(squared_distance(load_vec3(grid.sorted_points + 3 * s), query), original);
+          candidate = original != excluded && (!heap.full() || item < heap.key[0]);
+          ++s;
+        }
+        const uint32_t word = lanes.ballot(candidate);
+        if (word == 0u) continue;
+        if (candidate) offered[lane] = item;
+        lanes.sync();
+        if (lane == 0) {
+          NeighborHeap<T> own = heap;
+          for (uint32_t bits = word; bits != 0u; bits &= bits - 1u) {
+            const HeapKey<T> next = offered[lowest_bit(bits)];
+            if (!own.full()) {
+              own.push(next);
+            } else if (next < own.key[0]) {
+              own.replace_root(next);
+            }
+          }
+        }
+        lanes.sync();
+        // Lane 0 pushed while the heap had room, as many as were offered.
+        heap.size = min_of(heap.size + bit_count(word), heap.capacity);
+      }
+    }
+    if (rings.exhausted(r, heap, infinity)) break;
+  }
+}
+
+}  // namespace core
+}  // namespace torchvor

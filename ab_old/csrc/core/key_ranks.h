@@ -1,0 +1,54 @@
+// Host-only: the rank of each of n distinct non-negative 64-bit keys (the
+// number of smaller keys), which is its position in sorted order.
+//
+// The kNN's last step sorts its k best keys. For k up to ~100 a rank count
+// is quadratic but branch-free, and with AVX2 (four 64-bit compares per
+// instruction) it takes about half the time of std::sort, whose branches
+// mispredict on these keys (k = 35: 190 vs 460 ns, k = 63: 540 vs 1000 ns per
+// query on the development machine). AVX2 is chosen at run time, so the
+// build stays portable; CPUs without it use std::sort.
+#pragma once
+
+#if !defined(__CUDACC__) && defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#define TORCHVOR_HAS_KEY_RANKS 1
+
+#include <immintrin.h>
+
+#include <cstdint>
+
+namespace torchvor {
+namespace core {
+
+// Largest n ranked (the stack array's size). Measured faster than
+// std::sort up to k = 90 (1M kNN: 3.02 -> 2.58 s); quadratic beyond.
+constexpr int32_t kMaxRankedKeys = 128;
+
+inline bool cpu_has_avx2() {
+  static const bool has = __builtin_cpu_supports("avx2");
+  return has;
+}
+
+// rank[i] = number of keys smaller than key[i]; keys must be distinct and
+// below 2^63 (compared as signed integers).
+__attribute__((target("avx2"))) inline void key_ranks(const int64_t* key, int32_t n,
+                                                       int32_t* rank) {
+  for (int32_t i = 0; i < n; ++i) {
+    const __m256i item = _mm256_set1_epi64x(key[i]);
+    __m256i count = _mm256_setzero_si256();
+    int32_t j = 0;
+    for (; j + 4 <= n; j += 4) {
+      const __m256i other = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(key + j));
+      count = _mm256_sub_epi64(count, _mm256_cmpgt_epi64(item, other));  // -1 where smaller
+    }
+    alignas(32) int64_t lanes[4];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(lanes), count);
+    int64_t smaller = lanes[0] + lanes[1] + lanes[2] + lanes[3];
+    for (; j < n; ++j) smaller += key[j] < key[i];
+    rank[i] = static_cast<int32_t>(smaller);
+  }
+}
+
+}  // namespace core
+}  // namespace torchvor
+
+#endif

@@ -1,0 +1,161 @@
+// One Voronoi cell from its sorted neighbour list (paper §3, Alg. 2).
+#pragma once
+
+#include "convex_cell.h"
+#include "cooperative_cell.h"
+
+namespace torchvor {
+namespace core {
+
+// The cancellation a cell's integrals may have (sum of the absolute volumes
+// of its tetrahedra over its volume) when computed in T for outputs of type
+// io_t. The relative rounding error of the volume is about the ratio times
+// T's unit roundoff, so the limits hold it near 1e-5 for float32 outputs and
+// 1e-12 for float64 ones. White noise stays below ~7; needle cells of tight
+// clusters reach 1e9 and are recomputed in wider arithmetic. 0: no limit
+// (double-double, the last resort).
+template <typename io_t, typename T> struct CancellationLimit { static constexpr double value = 0.0; };
+template <> struct CancellationLimit<float, float> { static constexpr double value = 1e2; };
+template <> struct CancellationLimit<float, double> { static constexpr double value = 1e9; };
+template <> struct CancellationLimit<double, double> { static constexpr double value = 1e4; };
+
+template <typename T>
+struct CellIntegrals {
+  T volume;
+  Vec3<T> centroid;    // absolute coordinates
+  T second_moment;     // integral over the cell of |x - seed|^2
+  int8_t status;
+  int32_t neighbors;   // neighbours consumed before the radius of security
+};
+
+// A cell's neighbours as its lanes read them: lane l reads neighbour base + l
+// (the index, then the coordinates), and step n takes neighbour n from lane
+// n % kCount. A warp so has 32 neighbours' two dependent loads in flight at
+// once; read one at a time, they were a fifth of the warp cell's stall
+// samples on white noise (ncu, H100). A single lane reads each neighbour at
+// its step, as before.
+template <typename Lanes, typename io_t, typename T>
+struct NeighborReader {
+  Lanes lanes;
+  const io_t* points;
+  const int32_t* neighbors;  // the n-th at neighbors[n * stride]
+  int64_t stride;
+  int32_t k;
+  Vec3<T> seed;
+  int32_t own_index = -1;  // this lane's neighbour (-1: none, or past k)
+  Vec3<T> own_offset = {T(0), T(0), T(0)};
+
+  // Neighbour n's index and its offset from the seed, in every lane; steps
+  // go up from n = 0, one at a time.
+  TV_HD void read(int32_t n, int32_t& index, Vec3<T>& offset) {
+    const int source = n % Lanes::kCount;
+    if (source == 0) fetch(n);
+    index = lanes.broadcast(own_index, source);
+    offset = {lanes.broadcast(own_offset.x, source), lanes.broadcast(own_offset.y, source),
+              lanes.broadcast(own_offset.z, source)};
+  }
+
+ private:
+  TV_HD void fetch(int32_t base) {
+    const int32_t n = base + lanes.index();
+    own_index = n < k ? neighbors[n * stride] : -1;
+    if (own_index >= 0) {
+      own_offset = {T(points[3 * own_index]) - seed.x, T(points[3 * own_index + 1]) - seed.y,
+                    T(points[3 * own_index + 2]) - seed.z};
+    }
+  }
+};
+
+// `neighbors` lists k indices (the n-th at neighbors[n * stride]) sorted by
+// distance to the seed, padded with -1 when the batch element has fewer points. Coordinates are read as io_t
+// and computed in T (T may be wider, for the float64 recovery pass).
+// `Cell` is a ConvexCell (one thread) or a CooperativeCell (a group of lanes,
+// each of which runs this function with the same arguments).
+template <typename Cell, typename io_t, typename T = typename Cell::Scalar>
+TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed_index,
+                                    const int32_t* neighbors, int64_t stride, int32_t k,
+                                    const io_t* box, T relative_tolerance, int band_widenings) {
+  const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
+                        T(points[3 * seed_index + 2])};
+  const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
+  const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
+  cell.init_box(lo - seed, hi - seed, relative_tolerance, band_widenings);
+
+  CellIntegrals<T> out;
+  out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
+  out.neighbors = k;
+  Vec3<T> previous = {T(0), T(0), T(0)};
+  NeighborReader<typename Cell::Lanes, io_t, T> reader{cell.group(), points, neighbors, stride, k, seed};
+  for (int32_t n = 0; n < k; ++n) {
+    int32_t j;
+    Vec3<T> r;  // the neighbour relative to the seed
+    reader.read(n, j, r);
+    if (j < 0) {  // every point of the batch element has been used
+      out.status = kSuccess;
+      out.neighbors = n;
+      break;
+    }
+    const T r2 = dot(r, r);
+    if (r2 == T(0)) {
+      // Exact duplicate: the lowest index keeps the cell, the others are empty.
+      if (j < seed_index) {
+        out.status = kDuplicate;
+        out.neighbors = n + 1;
+        break;
+      }
+      continue;
+    }
+    // Exact copies among the neighbours (sorted, so adjacent) give the same
+    // bisector twice: clip once.
+    if (n > 0 && r.x == previous.x && r.y == previous.y && r.z == previous.z) continue;
+    previous = r;
+    if (cell.security_radius_reached(r2)) {
+      out.status = kSuccess;
+      out.neighbors = n;
+      break;
+    }
+    if (!cell.clip_by_bisector(r)) {
+      out.status = cell.status;
+      out.neighbors = n + 1;
+      break;
+    }
+  }
+  // One exit from the loop above (no early return inside it): on the GPU the
+  // lanes of a warp meet again here and integrate together, instead of each
+  // lane integrating as soon as its own loop ends while the others clip.
+  if (out.status == kDuplicate) {
+    out.volume = T(0);
+    out.centroid = seed;
+    out.second_moment = T(0);
+    return out;
+  }
+  if (out.status != kSuccess) {
+    const T nan = T(0) / T(0);
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
+    return out;
+  }
+  Vec3<T> first_moment;
+  T unsigned_volume;
+  cell.integrate(out.volume, first_moment, out.second_moment, unsigned_volume);
+  const T sum = out.volume + out.second_moment + first_moment.x + first_moment.y + first_moment.z;
+  constexpr double limit = CancellationLimit<io_t, T>::value;
+  const bool ill_conditioned = limit > 0.0 && unsigned_volume > T(limit) * out.volume;
+  if (!is_finite_value(sum) || ill_conditioned) {
+    // NaN or Inf from a degenerate cell, or more cancellation than T
+    // resolves: never a silent success; the caller retries in wider arithmetic.
+    const T nan = T(0) / T(0);
+    out.status = is_finite_value(sum) ? kIllConditioned : kBoundaryError;
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
+    return out;
+  }
+  // The centroid of an empty (zero-volume) cell is its seed.
+  out.centroid = out.volume > T(0) ? seed + (T(1) / out.volume) * first_moment : seed;
+  return out;
+}
+
+}  // namespace core
+}  // namespace torchvor

@@ -1,0 +1,92 @@
+// Runs a functor over [0, n) on all CPU threads (ATen's OpenMP pool).
+#pragma once
+
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+
+#include <cstddef>
+#include <memory>
+#include <vector>
+
+#include "../core/common.h"
+#include "../core/lanes.h"
+#include "isa.h"
+#include "large_buffers.h"
+
+namespace torchvor {
+namespace cpu {
+
+struct CpuExec {
+  using Lanes = core::SingleLane;  // the lanes of one cooperative item
+  // A cell reads its neighbour list in one cache line or two: row-major.
+  static constexpr bool kColumnMajorNeighbors = false;
+  // One thread per cell (ConvexCell) and per kNN query: a group of lanes
+  // has nothing to share its work with here (the cooperative loops run a
+  // group of one lane, for the tests).
+  static bool cooperative_cells(int64_t /*cells*/, int64_t /*k*/) { return false; }
+  static bool cooperative_queries(int64_t /*queries*/) { return false; }
+  static bool fits_cooperative_scratch(int64_t /*bytes_per_item*/) { return true; }
+
+  // Small grains: the work per index varies a lot (cells near the box,
+  // recovery passes), and the grid-ordered indices keep locality anyway.
+  static constexpr int64_t kGrain = 64;
+
+  // Output tensors: large ones on huge pages (see large_buffers.h).
+  static at::Tensor empty(at::IntArrayRef sizes, const at::TensorOptions& options) {
+    return empty_large(sizes, options);
+  }
+
+  template <typename Functor>
+  static void for_each(int64_t n, const Functor& functor) {
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+      for (int64_t i = begin; i < end; ++i) functor(i);
+    });
+  }
+
+  // Like for_each, for the loops that carry the CPU time (clipping cells):
+  // on CPUs with AVX2 and FMA the loop runs from a copy compiled for them
+  // (isa.h), where a * b + c may round once, as on the GPU. Not for code that
+  // relies on separately rounded products (double-double's Dekker split).
+  template <typename Functor>
+  static void for_each_fma(int64_t n, const Functor& functor) {
+    const Isa isa = cpu_isa();
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+      run_range(isa, begin, end, functor);
+    });
+  }
+
+  // functor(i, lanes, arrays) with a group of one lane (core::SingleLane) and
+  // one Arrays per thread, reused from item to item.
+  template <typename Arrays, typename Functor>
+  static void for_each_cooperative(int64_t n, const Functor& functor) {
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+      const auto arrays = std::make_unique<Arrays>();
+      for (int64_t i = begin; i < end; ++i) functor(i, core::SingleLane{}, *arrays);
+    });
+  }
+
+  // functor(i, lanes, arena): for_each_with_scratch with a group of one lane.
+  template <typename Functor>
+  static void for_each_cooperative_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
+    for_each_with_scratch(n, bytes, [&](int64_t i, core::ScratchArena arena) {
+      functor(i, core::SingleLane{}, arena);
+    });
+  }
+
+  // functor(i, arena): `bytes` of working memory for item i (one lane),
+  // reused by the next item of the same thread. (The kNN search runs here;
+  // an AVX2 copy of it measured no faster: 100K points, k=64, 165-170 ms
+  // either way.)
+  template <typename Functor>
+  static void for_each_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+      std::vector<std::max_align_t> scratch((bytes + sizeof(std::max_align_t) - 1) /
+                                            sizeof(std::max_align_t));
+      unsigned char* base = reinterpret_cast<unsigned char*>(scratch.data());
+      for (int64_t i = begin; i < end; ++i) functor(i, core::ScratchArena{base, 0, 1});
+    });
+  }
+};
+
+}  // namespace cpu
+}  // namespace torchvor

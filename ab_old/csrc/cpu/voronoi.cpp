@@ -1,0 +1,18 @@
+#include <torch/library.h>
+
+#include "../ops/voronoi.h"
+#include "exec.h"
+
+namespace torchvor {
+namespace cpu {
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cpu(
+    const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
+    c10::optional<int64_t> k, int64_t memory_budget) {
+  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget);
+}
+
+TORCH_LIBRARY_IMPL(torchvor, CPU, m) { m.impl("voronoi_cells", &voronoi_cells_cpu); }
+
+}  // namespace cpu
+}  // namespace torchvor

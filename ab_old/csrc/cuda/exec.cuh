@@ -1,0 +1,184 @@
+// Runs a functor over [0, n) as one CUDA kernel on the current stream.
+#pragma once
+
+#include <ATen/ATen.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAException.h>
+
+#include <algorithm>
+
+#include "../core/common.h"
+#include "../core/lanes.h"
+
+namespace torchvor {
+namespace cuda {
+
+template <typename Functor>
+__global__ void for_each_kernel(int64_t n, Functor functor) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) functor(i);
+}
+
+// Scratch in dynamic shared memory, interleaved across the block's threads.
+template <typename Functor>
+__global__ void for_each_shared_scratch_kernel(int64_t n, Functor functor) {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) functor(i, core::ScratchArena{shared_bytes, threadIdx.x, blockDim.x});
+}
+
+// Scratch in global memory when it does not fit on chip, interleaved across
+// all n items (a warp's lanes read consecutive addresses for the same slot).
+template <typename Functor>
+__global__ void for_each_global_scratch_kernel(int64_t n, unsigned char* scratch, Functor functor) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) functor(i, core::ScratchArena{scratch, i, n});
+}
+
+// One warp per item, each with its Arrays in dynamic shared memory; a warp
+// never splits (the whole warp returns when its item is out of range).
+template <typename Arrays, typename Functor>
+__global__ void for_each_cooperative_kernel(int64_t n, Functor functor) {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  const int warp = threadIdx.x / 32;
+  const int64_t i = int64_t(blockIdx.x) * (blockDim.x / 32) + warp;
+  if (i >= n) return;
+  functor(i, core::WarpLanes{}, reinterpret_cast<Arrays*>(shared_bytes)[warp]);
+}
+
+// One warp per item with `bytes_per_item` of dynamic shared memory each.
+template <typename Functor>
+__global__ void for_each_cooperative_scratch_kernel(int64_t n, int64_t bytes_per_item, Functor functor) {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  const int warp = threadIdx.x / 32;
+  const int64_t i = int64_t(blockIdx.x) * (blockDim.x / 32) + warp;
+  if (i >= n) return;
+  functor(i, core::WarpLanes{}, core::ScratchArena{shared_bytes + warp * bytes_per_item, 0, 1});
+}
+
+struct CudaExec {
+  using Lanes = core::WarpLanes;  // the lanes of one cooperative item
+
+  // Output tensors: the caching allocator.
+  static at::Tensor empty(at::IntArrayRef sizes, const at::TensorOptions& options) {
+    return at::empty(sizes, options);
+  }
+
+  // 128 threads per block: a sweep of 32-256 threads and of residency caps
+  // changed nothing or made it slower (benchmarks/NOTES.md).
+  static constexpr int kThreads = 128;
+  // Neighbour n of cell t at n * chunk + t: a warp's 32 cells read and write
+  // one contiguous line per neighbour instead of 32 scattered ones.
+  static constexpr bool kColumnMajorNeighbors = true;
+
+  template <typename Functor>
+  static void for_each(int64_t n, const Functor& functor) {
+    if (n == 0) return;
+    const int64_t blocks = (n + kThreads - 1) / kThreads;
+    for_each_kernel<<<blocks, kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+
+  // A warp per cell (CooperativeCell) or a thread per cell (ConvexCell).
+  // A pass over few cells (retries, the pilot) takes as long as its slowest
+  // cell, and a warp cuts that latency (H100, jittered grid, k=48, clip
+  // kernel thread / warp, benchmarks/crossover.py: 1024 cells 0.245 / 0.048
+  // ms, 16384: 0.278 / 0.251, 65536: 0.844 / 0.958). Over many cells, a
+  // thread per cell wins on regular cells (blue noise), and a warp wins on
+  // irregular ones (white noise, perturbed grids): a thread then tests many
+  // neighbours against many vertices one at a time, and the threads of a
+  // warp diverge. The pass's k tells them apart, as the pilot (or Lloyd's
+  // adapted k) picks it from the neighbours the cells need: blue noise gets
+  // 19-24, perturbed grids ~48, white noise ~64. Voronoi wall time at 1M,
+  // thread / warp, H100 (crossover.py --op k, 2fd1a58): blue k=24 10.2 /
+  // 12.2 ms, k=32 10.5 / 13.2; perturbed k=48 30.6 / 19.8; white k=64 47.9 /
+  // 26.7 (white and perturbed favour the warp at every k from 24 to 80, blue
+  // the thread at every k). From k = 40: a caller's k up to 39 on blue noise
+  // stays on threads, and the pilot's k of both irregular kinds is above.
+  static constexpr int64_t kCooperativeCellsUpTo = 16384;
+  static constexpr int64_t kCooperativeCellsFromK = 40;
+  static bool cooperative_cells(int64_t cells, int64_t k) {
+    return cells <= kCooperativeCellsUpTo || k >= kCooperativeCellsFromK;
+  }
+
+  // functor(i, lanes, arrays): the 32 lanes of a warp (core::WarpLanes) per
+  // item, sharing one Arrays in shared memory; up to 4 warps a block, fewer
+  // when their arrays pass the 48 KB a block gets without opting in.
+  template <typename Arrays, typename Functor>
+  static void for_each_cooperative(int64_t n, const Functor& functor) {
+    if (n == 0) return;
+    constexpr int64_t kSharedPerBlock = 48 * 1024;
+    static_assert(sizeof(Arrays) <= kSharedPerBlock, "a cell's arrays must fit in 48 KB of shared memory");
+    const int64_t warps = std::min<int64_t>(kThreads / 32, kSharedPerBlock / int64_t(sizeof(Arrays)));
+    const int64_t blocks = (n + warps - 1) / warps;
+    for_each_cooperative_kernel<Arrays, Functor>
+        <<<blocks, int(32 * warps), warps * sizeof(Arrays), at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+
+  // The same for kNN queries: a pass over few queries (a retry pass inside
+  // voronoi) waits on one thread's serial cell and point loads; a warp per
+  // query has them in flight together (H100, 1M jittered grid, k=28, kNN
+  // kernel thread / warp: 1024 queries 0.206 / 0.034 ms, 16384: 0.195 /
+  // 0.139, 65536: 0.233 / 0.491; benchmarks/crossover.py).
+  static constexpr int64_t kCooperativeQueriesUpTo = 16384;
+  static bool cooperative_queries(int64_t queries) { return queries <= kCooperativeQueriesUpTo; }
+
+  // Whether one warp's scratch fits the 48 KB of shared memory a block gets
+  // without opting in (k up to ~6000 float32 neighbours).
+  static bool fits_cooperative_scratch(int64_t bytes_per_item) { return bytes_per_item <= 48 * 1024; }
+
+  // functor(i, lanes, arena): a warp per item with `bytes_per_item` of
+  // shared memory (fits_cooperative_scratch), up to 4 warps a block.
+  template <typename Functor>
+  static void for_each_cooperative_with_scratch(int64_t n, int64_t bytes_per_item, const Functor& functor) {
+    if (n == 0) return;
+    const int64_t warps = std::max<int64_t>(1, std::min<int64_t>(kThreads / 32, 48 * 1024 / bytes_per_item));
+    const int64_t blocks = (n + warps - 1) / warps;
+    for_each_cooperative_scratch_kernel<Functor><<<blocks, int(32 * warps), warps * bytes_per_item,
+                                                   at::cuda::getCurrentCUDAStream()>>>(n, bytes_per_item,
+                                                                                      functor);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+
+  // The CPU's name for a loop that may fuse multiply-adds; nvcc fuses anyway.
+  template <typename Functor>
+  static void for_each_fma(int64_t n, const Functor& functor) {
+    for_each(n, functor);
+  }
+
+  // functor(i, arena) with `bytes_per_item` of scratch per item, in shared
+  // memory (at most half of an SM's per block, so that two blocks fit; fewer
+  // threads per block for large scratch), or in global memory beyond that.
+  template <typename Functor>
+  static void for_each_with_scratch(int64_t n, int64_t bytes_per_item, const Functor& functor) {
+    if (n == 0) return;
+    const auto stream = at::cuda::getCurrentCUDAStream();
+    int device = 0, max_shared = 0;
+    C10_CUDA_CHECK(cudaGetDevice(&device));
+    C10_CUDA_CHECK(cudaDeviceGetAttribute(&max_shared, cudaDevAttrMaxSharedMemoryPerBlockOptin, device));
+    int threads = kThreads;
+    while (threads > 32 && threads * bytes_per_item > max_shared / 2) threads /= 2;
+    const int64_t shared_bytes = threads * bytes_per_item;
+    if (shared_bytes <= max_shared) {
+      const auto kernel = for_each_shared_scratch_kernel<Functor>;
+      if (shared_bytes > 48 * 1024) {
+        C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                            static_cast<int>(shared_bytes)));
+      }
+      const int64_t blocks = (n + threads - 1) / threads;
+      kernel<<<blocks, threads, shared_bytes, stream>>>(n, functor);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+      return;
+    }
+    const at::Tensor scratch = at::empty({n * bytes_per_item},
+                                         at::TensorOptions().dtype(at::kByte).device(at::kCUDA, device));
+    const int64_t blocks = (n + kThreads - 1) / kThreads;
+    for_each_global_scratch_kernel<Functor><<<blocks, kThreads, 0, stream>>>(
+        n, scratch.data_ptr<uint8_t>(), functor);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+};
+
+}  // namespace cuda
+}  // namespace torchvor

@@ -1,0 +1,160 @@
+// torchvor::knn, shared by the CPU and CUDA backends. `Exec` runs a functor
+// over an index range: cpu/exec.h (at::parallel_for) or cuda/exec.cuh (a
+// kernel launch); everything else here is backend-agnostic.
+#pragma once
+
+#include <ATen/ATen.h>
+
+#include <cstdlib>
+#include <cstring>
+#include <tuple>
+#include <type_traits>
+
+#include "../core/grid_search.h"
+#include "checks.h"
+#include "grid.h"
+
+namespace torchvor {
+namespace ops {
+
+// Which implementation runs a pass: one thread per item, or a group of lanes
+// per item (cooperative). The backend chooses (Exec::cooperative_queries
+// by the pass's size, Exec::cooperative_cells by its size and k); the
+// environment variable `variable` set to "thread" or "cooperative" (read on
+// every call) overrides that for every pass, so that the tests run both on
+// each device and A/B timings need no second build. Other values: the
+// backend's choice.
+inline bool use_cooperative(const char* variable, bool backend_default) {
+  const char* forced = std::getenv(variable);
+  if (forced != nullptr && std::strcmp(forced, "cooperative") == 0) return true;
+  if (forced != nullptr && std::strcmp(forced, "thread") == 0) return false;
+  return backend_default;
+}
+
+// Query t of `order` -> its k nearest points, written to row `row(t)` of
+// (dist2, index). The heap lives in a k-slot scratch array that the executor
+// provides: a contiguous array per CPU thread, shared memory interleaved
+// across a block's threads on the GPU (one thread per query), or shared
+// memory of the lanes that search one query together.
+template <typename T, typename index_t>
+struct KnnFunctor {
+  core::GridView<T> grid;
+  const T* queries;              // (M, 3): query order[t] at row order[t], or at row t if queries_in_order
+  const int64_t* query_batch;    // (M,) or nullptr
+  const int32_t* order;          // processing order: query id of step t
+  T* dist2;                      // (rows, k), or nullptr when only indices are wanted
+  index_t* index;                // (rows, k): int64 for the public op, int32 inside Voronoi
+  int32_t k;
+  bool queries_in_order;         // queries are stored in processing order (sequential reads)
+  bool exclude_self;             // queries are the points: skip point q for query q
+  bool row_by_query;             // row = query id (else row = t, chunk-local)
+  int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
+
+  static int64_t scratch_bytes(int64_t k) { return core::ScratchArena::bytes<core::HeapKey<T>>(k); }
+  // The heap and one offered candidate per lane.
+  template <typename Lanes>
+  static int64_t cooperative_scratch_bytes(int64_t k) {
+    return scratch_bytes(k) + core::ScratchArena::bytes<core::HeapKey<T>>(Lanes::kCount);
+  }
+
+  // One thread searches query t.
+  TV_HD void operator()(int64_t t, core::ScratchArena scratch) const {
+    const int32_t q = order[t];
+    const T inf = T(1) / T(0);
+    core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
+    core::knn_search(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, inf);
+    heap.write_sorted(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride, inf);
+  }
+
+  // A group of lanes searches query t together; `scratch` is theirs.
+  template <typename Lanes>
+  TV_HD void operator()(int64_t t, Lanes lanes, core::ScratchArena scratch) const {
+    const int32_t q = order[t];
+    const T inf = T(1) / T(0);
+    core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
+    const core::StridedArray<core::HeapKey<T>> offered = scratch.take<core::HeapKey<T>>(Lanes::kCount);
+    core::knn_search_cooperative(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, offered, inf,
+                                 lanes);
+    heap.write_ranked(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride, inf, lanes);
+  }
+
+  TV_HD int64_t batch_of(int32_t q) const { return query_batch ? query_batch[q] : 0; }
+  TV_HD core::Vec3<T> query(int64_t t, int32_t q) const {
+    return core::load_vec3(queries + 3 * (queries_in_order ? t : int64_t(q)));
+  }
+  TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * row_stride; }
+};
+
+// Runs the search for `count` queries. `dist2` may be undefined when only
+// indices are wanted. Results are (rows, k) row-major, or (k, rows)
+// column-major when `column_major` (coalesced on GPUs). TORCHVOR_KNN=thread
+// or =cooperative overrides the backend's choice of implementation.
+template <typename Exec, typename T, typename index_t>
+void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_order,
+             const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
+             bool exclude_self, bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
+  using Functor = KnnFunctor<T, index_t>;
+  const int64_t rows = index.numel() / k;
+  const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
+  const Functor functor{grid, queries, query_batch, order,
+                        dist2.defined() ? dist2.data_ptr<T>() : nullptr,
+                        index.data_ptr<index_t>(),
+                        static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
+                        row_stride, column_stride};
+  const int64_t cooperative_bytes = Functor::template cooperative_scratch_bytes<typename Exec::Lanes>(k);
+  if (Exec::fits_cooperative_scratch(cooperative_bytes) &&
+      use_cooperative("TORCHVOR_KNN", Exec::cooperative_queries(count))) {
+    Exec::for_each_cooperative_with_scratch(count, cooperative_bytes, functor);
+  } else {
+    Exec::for_each_with_scratch(count, Functor::scratch_bytes(k), functor);
+  }
+}
+
+template <typename Exec>
+std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
+                                               const at::Tensor& queries_in, int64_t k,
+                                               const c10::optional<at::Tensor>& points_batch_in,
+                                               const c10::optional<at::Tensor>& queries_batch_in,
+                                               bool exclude_self) {
+  const auto contiguous = [](const c10::optional<at::Tensor>& t) {
+    return t.has_value() ? c10::optional<at::Tensor>(t->contiguous()) : c10::nullopt;
+  };
+  const c10::optional<at::Tensor> points_batch = contiguous(points_batch_in);
+  const c10::optional<at::Tensor> queries_batch = contiguous(queries_batch_in);
+  const int64_t num_batches =
+      check_knn_inputs(points_in, queries_in, k, points_batch, queries_batch, exclude_self);
+  const int64_t m = queries_in.size(0);
+  at::Tensor dist2 = Exec::empty({m, k}, queries_in.options());
+  at::Tensor index = Exec::empty({m, k}, queries_in.options().dtype(at::kLong));
+  const at::Tensor points = points_in.contiguous();
+  const at::Tensor queries = queries_in.contiguous();
+  const ValueChecks values = knn_value_checks(points, queries);
+  if (m == 0) {
+    values.run();
+    return {dist2, index};
+  }
+  // The value checks travel with the grid's bounds: one device sync.
+  std::vector<double> holds;
+  const at::Tensor bounds = point_bounds(points, points_batch, num_batches, values.conditions(), &holds);
+  values.verify(holds.data());
+  const Grid grid = build_grid<Exec>(points, points_batch, num_batches, points_per_cell_for(k), bounds);
+  // Visit queries in grid order: neighbouring queries read the same cells.
+  // When the queries are the points, the grid's sorted copy holds them in
+  // that order already (sequential reads).
+  const bool queries_are_points = exclude_self && !points_batch.has_value();
+  const at::Tensor order = queries_are_points
+                               ? grid.sorted_index
+                               : cell_ids<Exec>(queries, queries_batch, grid).argsort().to(at::kInt);
+  const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
+    run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), ordered_queries.data_ptr<scalar_t>(),
+                            queries_are_points,
+                            queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
+                            order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
+                            /*column_major=*/false, dist2, index);
+  });
+  return {dist2, index};
+}
+
+}  // namespace ops
+}  // namespace torchvor

@@ -1,0 +1,27 @@
+// The torchvor operator schemas. Backends register kernels in cpu/ and cuda/;
+// fake (meta) kernels and autograd live in torchvor/ops.py.
+#include <torch/library.h>
+
+TORCH_LIBRARY(torchvor, m) {
+  // k nearest points of every query, sorted by (squared distance, index),
+  // padded with (inf, -1). dist2: (M, k) points' dtype; idx: (M, k) int64.
+  m.def(
+      "knn(Tensor points, Tensor queries, int k, Tensor? batch=None, Tensor? query_batch=None, "
+      "bool exclude_self=False) -> (Tensor dist2, Tensor idx)");
+  // Voronoi cells of points clipped to box (B, 2, 3): volume (N,), centroid
+  // (N, 3), second moment about the seed (N,), status (N,) int8, and the
+  // number of neighbours each cell needed (N,) int32. k: first-pass
+  // neighbours; None measures it on a pilot sample of cells.
+  m.def(
+      "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
+      "int memory_budget=268435456) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "Tensor status, Tensor neighbors)");
+}
+
+// `import torchvor._C` loads this library, which runs the registrations above.
+#include <Python.h>
+
+extern "C" PyObject* PyInit__C(void) {
+  static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_C", nullptr, -1, nullptr};
+  return PyModule_Create(&module);
+}

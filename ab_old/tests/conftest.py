@@ -1,0 +1,57 @@
+"""Shared fixtures for torchvor's tests.
+
+* ``device``: every test runs on "cpu", and also on "cuda" when available.
+* ``dtype``: float32 / float64 where a test asks for it.
+* ``seed`` / ``gen``: fresh random inputs per test. The seed is drawn from the OS
+  (or fixed with TORCHVOR_TEST_SEED=<int>) and printed in the report of a
+  failing test, so a failure can be replayed.
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))  # `import oracles` from the tests
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    return torch.device(request.param)
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["float32", "float64"])
+def dtype(request):
+    return request.param
+
+
+@pytest.fixture
+def seed(request):
+    fixed = os.environ.get("TORCHVOR_TEST_SEED")
+    value = int(fixed) if fixed is not None else int.from_bytes(os.urandom(4), "little")
+    request.node.user_properties.append(("seed", value))
+    return value
+
+
+@pytest.fixture
+def gen(seed):
+    """A CPU torch.Generator seeded per test (draw on CPU, then move: identical
+    inputs on every device)."""
+    g = torch.Generator()
+    g.manual_seed(seed)
+    return g
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.when == "call" and report.failed:
+        for name, value in item.user_properties:
+            if name == "seed":
+                report.sections.append(
+                    ("torchvor seed", f"replay with TORCHVOR_TEST_SEED={value} pytest '{item.nodeid}'"))

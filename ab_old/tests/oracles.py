@@ -1,0 +1,380 @@
+"""Independent reference implementations for torchvor's tests (and benchmarks).
+
+Nothing here calls torchvor: the kNN oracle is brute force in float64 (numpy),
+and the Voronoi oracle intersects half-spaces with scipy/Qhull, cell by cell,
+using the bisectors of *all* other points plus the six box planes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = [
+    "brute_force_knn",
+    "pairwise_dist2",
+    "exact_knn_with_ties",
+    "check_knn_result",
+    "tetrahedron_integrals",
+    "CellOracle",
+    "voronoi_cell_oracle",
+    "voronoi_oracle",
+]
+
+
+# ----------------------------------------------------------------------------- kNN
+
+
+def _np64(x) -> np.ndarray:
+    """Any tensor / array -> float64 numpy array holding exactly the same values."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu()
+        if x.dtype.is_floating_point:
+            x = x.double()
+        x = x.numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def pairwise_dist2(queries, points) -> np.ndarray:
+    """(M, N) squared distances in float64 from explicit coordinate differences
+    (no |a|^2 - 2ab + |b|^2 expansion, which cancels catastrophically at large offsets)."""
+    q = _np64(queries)
+    p = _np64(points)
+    out = np.zeros((q.shape[0], p.shape[0]))
+    for a in range(3):
+        diff = q[:, a, None] - p[None, :, a]
+        out += diff * diff
+    return out
+
+
+def _np_batch(b) -> Optional[np.ndarray]:
+    if b is None:
+        return None
+    return np.asarray(b.detach().cpu() if hasattr(b, "detach") else b, dtype=np.int64)
+
+
+def _allowed(rows: np.ndarray, n: int, batch, query_batch, exclude_self: bool) -> np.ndarray:
+    """(len(rows), n) mask of the points query `rows[r]` may return."""
+    allowed = np.ones((len(rows), n), dtype=bool)
+    if batch is not None:
+        allowed &= query_batch[rows, None] == batch[None, :]
+    if exclude_self:
+        allowed[np.arange(len(rows)), rows] = False
+    return allowed
+
+
+def _normalise(points, queries, batch, query_batch, exclude_self):
+    if queries is None:
+        queries = points
+        exclude_self = True if exclude_self is None else exclude_self
+        if query_batch is None:
+            query_batch = batch
+    return queries, _np_batch(batch), _np_batch(query_batch), bool(exclude_self)
+
+
+def _chunks(m: int, n: int):
+    step = max(1, (1 << 22) // max(n, 1))
+    for begin in range(0, m, step):
+        yield np.arange(begin, min(m, begin + step))
+
+
+def brute_force_knn(points, k: int, queries=None, *, batch=None, query_batch=None,
+                    exclude_self: Optional[bool] = None):
+    """Reference kNN in float64: (dist2 (M, k) float64, idx (M, k) int64), sorted by
+    (distance, index), padded with (inf, -1). Same conventions as torchvor.knn
+    (queries=None: the points, excluding themselves unless exclude_self=False)."""
+    queries, batch, query_batch, exclude_self = _normalise(points, queries, batch, query_batch,
+                                                           exclude_self)
+    p, q = _np64(points), _np64(queries)
+    n, m = len(p), len(q)
+    dist = np.full((m, k), np.inf)
+    idx = np.full((m, k), -1, dtype=np.int64)
+    kk = min(k, n)
+    for rows in _chunks(m, n):
+        d2 = pairwise_dist2(q[rows], p)
+        d2[~_allowed(rows, n, batch, query_batch, exclude_self)] = np.inf
+        if kk == 0:
+            continue
+        # the kk smallest by (distance, index): all below the kk-th distance, then
+        # the lowest indices among those equal to it
+        thr = np.partition(d2, kk - 1, axis=1)[:, kk - 1:kk]
+        below = d2 < thr
+        equal = d2 == thr
+        need = kk - below.sum(1, keepdims=True)
+        chosen = below | (equal & (np.cumsum(equal, 1) <= need))
+        cand = np.nonzero(chosen)[1].reshape(len(rows), kk)  # increasing index per row
+        dd = np.take_along_axis(d2, cand, 1)
+        order = np.take_along_axis(cand, np.argsort(dd, axis=1, kind="stable"), 1)
+        dd = np.take_along_axis(d2, order, 1)
+        ii = order.astype(np.int64)
+        ii[~np.isfinite(dd)] = -1
+        dist[rows, :kk] = dd
+        idx[rows, :kk] = ii
+    return dist, idx
+
+
+def exact_knn_with_ties(points, k: int, queries=None, **kwargs):
+    """Alias of :func:`brute_force_knn` for inputs whose squared distances are exact
+    in the tested dtype (e.g. small integer coordinates): then (distance, index)
+    order is unique and a result must match it index for index, distance for distance."""
+    return brute_force_knn(points, k, queries, **kwargs)
+
+
+def check_knn_result(dist2, idx, points, k: int, queries=None, *, batch=None, query_batch=None,
+                     exclude_self: Optional[bool] = None, rtol: Optional[float] = None) -> None:
+    """Tie-aware comparison of a kNN result (tensors) with the float64 brute force.
+
+    * shapes (M, k), idx int64, dist2 of the points' dtype;
+    * every returned index is valid (in range, allowed batch element, not the
+      excluded self, not repeated in its row), and its true float64 distance
+      equals the returned dist2 up to the rounding of the points' dtype;
+    * rows are sorted by (dist2, idx); padding (inf, -1) exactly where the oracle
+      has fewer than k candidates, and only at the end of a row;
+    * the true distances of the returned indices, sorted, equal the oracle's k
+      smallest (by value, so equidistant points may be exchanged).
+    Raises AssertionError describing the first mismatching query.
+    """
+    if queries is None and query_batch is None:
+        query_batch = batch
+    queries, batch_np, qbatch_np, excl = _normalise(points, queries, batch, query_batch, exclude_self)
+    is_float32 = str(dist2.dtype) == "torch.float32"
+    if rtol is None:
+        # fl(a - b) and 3 roundings per squared distance: < 8 units of roundoff
+        rtol = 8 * 2.0 ** -24 if is_float32 else 8 * 2.0 ** -53
+    m, n = queries.shape[0], points.shape[0]
+    assert tuple(dist2.shape) == (m, k), f"dist2 shape {tuple(dist2.shape)} != {(m, k)}"
+    assert tuple(idx.shape) == (m, k), f"idx shape {tuple(idx.shape)} != {(m, k)}"
+    assert str(idx.dtype) == "torch.int64", f"idx dtype {idx.dtype}"
+    assert dist2.dtype == points.dtype, f"dist2 dtype {dist2.dtype} != points dtype {points.dtype}"
+    assert dist2.device == points.device and idx.device == points.device, "outputs on the wrong device"
+    got_d = _np64(dist2)
+    got_i = idx.detach().cpu().numpy()
+    ref_d, ref_i = brute_force_knn(points, k, queries, batch=batch, query_batch=query_batch,
+                                   exclude_self=excl)
+    p, q = _np64(points), _np64(queries)
+
+    def fail(rows, message):
+        r = int(rows[0])
+        raise AssertionError(f"query {r}: {message}\n  got idx  {got_i[r]}\n  got d2   {got_d[r]}"
+                             f"\n  oracle   {ref_i[r]}\n  oracle d2 {ref_d[r]}")
+
+    valid = got_i >= 0
+    bad = np.nonzero(valid.sum(1) != np.isfinite(ref_d).sum(1))[0]
+    if len(bad):
+        fail(bad, "wrong number of neighbours (padding)")
+    bad = np.nonzero((~valid[:, :-1] & valid[:, 1:]).any(1))[0]
+    if len(bad):
+        fail(bad, "padding (-1) before a real neighbour")
+    bad = np.nonzero((~valid & ~(np.isposinf(got_d))).any(1))[0]
+    if len(bad):
+        fail(bad, "padding distance is not +inf")
+    bad = np.nonzero((valid & ~np.isfinite(got_d)).any(1))[0]
+    if len(bad):
+        fail(bad, "non-finite distance for a real neighbour")
+    bad = np.nonzero((got_i >= n).any(1) | (got_i < -1).any(1))[0]
+    if len(bad):
+        fail(bad, "index out of range")
+    # sorted by (dist2, idx) among the real neighbours; no index repeated
+    both = valid[:, :-1] & valid[:, 1:]
+    d0, d1, i0, i1 = got_d[:, :-1], got_d[:, 1:], got_i[:, :-1], got_i[:, 1:]
+    unsorted = both & ~((d0 < d1) | ((d0 == d1) & (i0 < i1)))
+    bad = np.nonzero(unsorted.any(1))[0]
+    if len(bad):
+        fail(bad, "row not sorted by (dist2, idx)")
+    srt = np.sort(np.where(valid, got_i, -1 - np.arange(k)), 1)
+    bad = np.nonzero((srt[:, 1:] == srt[:, :-1]).any(1))[0]
+    if len(bad):
+        fail(bad, "an index appears twice")
+    safe = np.where(valid, got_i, 0)
+    for rows in _chunks(m, 64):
+        allowed = _allowed(rows, n, batch_np, qbatch_np, excl)
+        ok = np.take_along_axis(allowed, safe[rows], 1) | ~valid[rows]
+        bad = rows[~ok.all(1)]
+        if len(bad):
+            fail(bad, "returned a forbidden index (other batch element, or the query itself)")
+    # true distances of the returned indices
+    diff = q[:, None, :] - p[safe]
+    true = np.where(valid, np.einsum("mkc,mkc->mk", diff, diff), np.inf)
+    fin = valid
+    err = np.abs(np.where(fin, got_d, 0.0) - np.where(fin, true, 0.0))
+    bad = np.nonzero((err > rtol * np.where(fin, true, 0.0)).any(1))[0]
+    if len(bad):
+        fail(bad, f"returned dist2 differs from the true distance of the returned index by "
+                  f"{err[bad[0]].max():.3e} (rtol {rtol:.1e})")
+    true_sorted = np.sort(true, 1)
+    close = np.isclose(true_sorted, ref_d, rtol=2 * rtol, atol=0.0) | (np.isinf(true_sorted) & np.isinf(ref_d))
+    bad = np.nonzero(~close.all(1))[0]
+    if len(bad):
+        fail(bad, "returned neighbours are not the k nearest (true distances differ from the oracle's)")
+
+
+# ------------------------------------------------------------------------- Voronoi
+
+
+def tetrahedron_integrals(p0, p1, p2, p3, dtype=np.float64):
+    """Exact integrals over the tetrahedra (p0, p1, p2, p3), coordinates relative
+    to the reference point x_i (arrays of shape (T, 3)), computed in `dtype`.
+
+    Returns (volume (T,), first moment (T, 3), second moment (T,)): the second
+    moment is the integral of |x|^2, = vol / 20 * (sum_j |p_j|^2 + |sum_j p_j|^2).
+    Volumes are unsigned.
+    """
+    p0, p1, p2, p3 = (np.asarray(p, dtype=dtype).reshape(-1, 3) for p in (p0, p1, p2, p3))
+    vol = np.abs(np.einsum("ij,ij->i", p1 - p0, np.cross(p2 - p0, p3 - p0))) / 6.0
+    total = p0 + p1 + p2 + p3
+    first = vol[:, None] * total / 4.0
+    squares = sum(np.einsum("ij,ij->i", p, p) for p in (p0, p1, p2, p3))
+    second = vol / 20.0 * (squares + np.einsum("ij,ij->i", total, total))
+    return vol, first, second
+
+
+@dataclass
+class CellOracle:
+    volume: float
+    centroid: np.ndarray  # (3,) absolute coordinates
+    second_moment: float  # integral over the cell of |x - seed|^2
+    vertices: np.ndarray  # (V, 3) absolute coordinates
+    facet_neighbors: np.ndarray  # indices of the points whose bisector bounds a facet
+    seed: np.ndarray  # (3,) the point itself
+    duplicate: bool = False
+    area: float = 0.0  # surface area of the cell
+
+    @property
+    def radius(self) -> float:
+        """Largest distance from the seed to a vertex of the cell."""
+        if len(self.vertices) == 0:
+            return 0.0
+        return float(np.sqrt(((self.vertices - self.seed) ** 2).sum(1).max()))
+
+
+def _interior_point(halfspaces: np.ndarray) -> np.ndarray:
+    """Chebyshev centre of {x : A x + b <= 0} (rows of A normalised)."""
+    from scipy.optimize import linprog
+
+    a, b = halfspaces[:, :3], halfspaces[:, 3]
+    norm = np.linalg.norm(a, axis=1)
+    c = np.array([0.0, 0.0, 0.0, -1.0])
+    res = linprog(c, A_ub=np.hstack([a, norm[:, None]]), b_ub=-b,
+                  bounds=[(None, None)] * 3 + [(0, None)], method="highs")
+    if not res.success or res.x[3] <= 0:
+        raise RuntimeError(f"oracle: empty or flat cell (linprog: {res.message})")
+    return res.x[:3]
+
+
+def _face_fans(verts: np.ndarray, planes_of_vertex, normals: np.ndarray) -> np.ndarray:
+    """Triangles (F, 3, 3) covering the cell's boundary: each face's vertices
+    (those on its plane) in angular order around the face's mean, fanned.
+    Built from the plane incidences rather than a convex hull of the vertices:
+    Qhull's hull of a needle cell's vertices can stop with a precision error."""
+    on_plane = {}
+    for v, planes in enumerate(planes_of_vertex):
+        for h in planes:
+            on_plane.setdefault(h, []).append(v)
+    triangles = []
+    for h, ids in on_plane.items():
+        if len(ids) < 3:
+            continue
+        ids = np.asarray(ids)
+        normal = normals[h] / np.linalg.norm(normals[h])
+        axis = np.eye(3)[np.argmin(np.abs(normal))]  # the axis least aligned with the normal
+        u = np.cross(normal, axis)
+        u /= np.linalg.norm(u)
+        w = np.cross(normal, u)
+        offsets = verts[ids] - verts[ids].mean(0)
+        ring = ids[np.argsort(np.arctan2(offsets @ w, offsets @ u))]
+        for t in range(1, len(ring) - 1):
+            triangles.append(verts[[ring[0], ring[t], ring[t + 1]]])
+    return np.asarray(triangles)
+
+
+def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
+    """Voronoi cell of points[i] clipped to box = (lo, hi), by Qhull half-space
+    intersection in coordinates relative to the seed (so large offsets lose no
+    precision), using the bisectors of all other points and the 6 box planes.
+
+    Volume and first moment come from tetrahedra (interior point, hull
+    triangle); the second moment about the seed from the same tetrahedra
+    with the exact formula vol / 20 * (sum |p_j|^2 + |sum p_j|^2), coordinates
+    relative to the seed. Exact duplicates: the lowest index owns the cell,
+    higher copies get an empty cell (volume 0, centroid = the seed).
+    """
+    from scipy.spatial import HalfspaceIntersection, QhullError
+
+    pts = _np64(points)
+    lo, hi = (_np64(b).reshape(3) for b in box)
+    seed = pts[i]
+    rel = pts - seed
+    r2 = np.einsum("ij,ij->i", rel, rel)
+    index = np.arange(len(pts))
+    if np.any((r2 == 0) & (index < i)):
+        return CellOracle(0.0, seed.copy(), 0.0, np.zeros((0, 3)), np.zeros(0, dtype=np.int64),
+                          seed, duplicate=True)
+    use = (index != i) & (r2 > 0)
+    owner = np.concatenate([np.full(6, -1), index[use]])  # point index of each half-space
+    r = rel[use]
+    norm = np.sqrt(r2[use])
+    # bisector: x . r <= |r|^2 / 2  ->  (r/|r|) . x - |r|/2 <= 0
+    bis = np.hstack([r / norm[:, None], -0.5 * norm[:, None]])
+    lo_r, hi_r = lo - seed, hi - seed
+    eye = np.eye(3)
+    box_hs = np.vstack([np.hstack([-eye, lo_r[:, None]]),   # -x + lo <= 0
+                        np.hstack([eye, -hi_r[:, None]])])  # x - hi <= 0
+    hs = np.vstack([box_hs, bis])
+    scale = float(np.max(hi_r - lo_r))
+    # the seed (origin) is interior unless it lies (nearly) on the box or a bisector
+    interior = np.zeros(3)
+    if (-hs[:, 3]).min() <= 1e-6 * scale:
+        interior = _interior_point(hs)
+    try:
+        hsi = HalfspaceIntersection(hs, interior)
+    except QhullError:
+        # Bisectors of a tight cluster meet at angles near 1e-6; Qhull can
+        # then flag a wide facet in post-processing. Allow it: the vertices
+        # are refined on their planes below anyway.
+        hsi = HalfspaceIntersection(hs, interior, qhull_options="Q12 Pp")
+    # refine every vertex by least squares on the planes Qhull says meet there
+    verts, planes_of = [], []
+    for point, facet in zip(hsi.intersections, hsi.dual_facets):
+        planes = hs[facet]
+        sol, *_ = np.linalg.lstsq(planes[:, :3], -planes[:, 3], rcond=None)
+        verts.append(sol if np.all(np.isfinite(sol)) else point)
+        planes_of.append(set(int(f) for f in facet))
+    verts = np.asarray(verts)
+    # merge coinciding vertices (a degenerate vertex comes once per plane triple)
+    key = np.round(verts / (1e-11 * scale)).astype(np.int64)
+    _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    group = group.reshape(-1)
+    merged = [set() for _ in first]
+    for g, planes in zip(group, planes_of):
+        merged[g] |= planes
+    verts = verts[first]
+    tri = _face_fans(verts, merged, hs[:, :3])  # (F, 3, 3)
+    centre = verts.mean(0)
+    c = np.broadcast_to(centre, tri[:, 0].shape)
+    # Extended precision (x87 long double on x86): a needle cell (1e-5 wide,
+    # 0.1 long) fans into slivers whose determinants cancel; in float64 its
+    # second moment came out 1.2e-10 off the exact rational value.
+    vol, first_moment, second = tetrahedron_integrals(c, tri[:, 0], tri[:, 1], tri[:, 2], np.longdouble)
+    volume = float(vol.sum())
+    centroid = (first_moment.sum(0) / vol.sum()).astype(np.float64)
+    # a plane bounds a facet when at least 3 distinct vertices lie on it
+    count = {}
+    for planes in merged:
+        for h in planes:
+            count[h] = count.get(h, 0) + 1
+    facets = sorted(int(owner[h]) for h, cnt in count.items() if cnt >= 3 and owner[h] >= 0)
+    area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    return CellOracle(volume, centroid + seed, float(second.sum()), verts + seed,
+                      np.array(facets, dtype=np.int64), seed, area=area)
+
+
+def voronoi_oracle(points, box, cells: Optional[Sequence[int]] = None):
+    """Oracle for many cells: (volume (C,), centroid (C, 3), second_moment (C,),
+    duplicate (C,) bool) for the cell indices `cells` (default: all)."""
+    pts = _np64(points)
+    if cells is None:
+        cells = range(len(pts))
+    out = [voronoi_cell_oracle(pts, int(i), box) for i in cells]
+    return (np.array([c.volume for c in out]), np.array([c.centroid for c in out]).reshape(-1, 3),
+            np.array([c.second_moment for c in out]), np.array([c.duplicate for c in out], dtype=bool))

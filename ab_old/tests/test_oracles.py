@@ -1,0 +1,34 @@
+"""The test oracles (tests/oracles.py) against values known in closed form, so
+that a wrong oracle cannot make a wrong torchvor pass."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from oracles import voronoi_cell_oracle
+
+
+def test_single_point_cell_is_the_box():
+    """One point in a 2 x 1 x 1 box: the cell is the box. About the seed s,
+    the second moment is the sum over axes of the integral of (x - s)^2."""
+    lo, hi = np.zeros(3), np.array([2.0, 1.0, 1.0])
+    seed = np.array([[0.5, 0.25, 0.75]])
+    cell = voronoi_cell_oracle(seed, 0, (lo, hi))
+    volume = 2.0
+    second = sum(volume / (h - l) * ((h - s) ** 3 - (l - s) ** 3) / 3 for l, h, s in zip(lo, hi, seed[0]))
+    assert cell.volume == pytest.approx(volume, rel=1e-14, abs=0)
+    assert cell.area == pytest.approx(2 * (2 + 2 + 1), rel=1e-14, abs=0)
+    assert cell.second_moment == pytest.approx(second, rel=1e-14, abs=0)
+    np.testing.assert_allclose(cell.centroid, [1.0, 0.5, 0.5], rtol=1e-14)
+
+
+def test_two_points_split_the_box():
+    """Two points on the x axis of the unit cube: the bisector x = 0.4 splits it."""
+    points = np.array([[0.2, 0.5, 0.5], [0.6, 0.5, 0.5]])
+    box = (np.zeros(3), np.ones(3))
+    left, right = (voronoi_cell_oracle(points, i, box) for i in range(2))
+    assert left.volume == pytest.approx(0.4, rel=1e-14, abs=0) and right.volume == pytest.approx(0.6, rel=1e-14, abs=0)
+    assert left.area == pytest.approx(2 + 4 * 0.4, rel=1e-14, abs=0)
+    np.testing.assert_allclose(left.centroid, [0.2, 0.5, 0.5], rtol=1e-14)
+    np.testing.assert_allclose(right.centroid, [0.7, 0.5, 0.5], rtol=1e-14)
+    assert list(left.facet_neighbors) == [1] and list(right.facet_neighbors) == [0]

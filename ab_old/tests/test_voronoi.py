@@ -1,0 +1,992 @@
+"""torchvor.voronoi against a per-cell scipy/Qhull half-space oracle (tests/oracles.py),
+plus exact identities (sum of volumes, first moments, lattices).
+
+Inputs are drawn fresh per test (``gen`` / ``seed`` fixtures; the seed is
+printed on failure) on the CPU in float64, rounded to the tested dtype, and
+moved to ``device``. The oracle always sees exactly the values torchvor saw.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+import torchvor
+from torchvor import CellStatus, samples
+
+from oracles import brute_force_knn, voronoi_cell_oracle
+
+has_cuda = torch.cuda.is_available()
+UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+
+# tolerances relative to each cell (volume, second moment) or its size (centroid)
+RTOL = {torch.float64: 1e-10, torch.float32: 1e-4}
+# sums over all cells, relative to the box volume (and box centre)
+SUM_RTOL = {torch.float64: 1e-11, torch.float32: 1e-5}
+
+
+def rand(n, gen, dtype, device, lo=0.0, hi=1.0):
+    lo = torch.as_tensor(lo, dtype=torch.float64)
+    hi = torch.as_tensor(hi, dtype=torch.float64)
+    return (torch.rand(n, 3, generator=gen, dtype=torch.float64) * (hi - lo) + lo).to(dtype).to(device)
+
+
+def ragged_batch(sizes, device):
+    return torch.repeat_interleave(torch.arange(len(sizes)), torch.tensor(sizes)).to(device)
+
+
+def box_of(points, box):
+    """(lo, hi) float64 numpy, as torchvor.voronoi interprets `box` (no batch)."""
+    if box is None:
+        p = points.detach().cpu().double().numpy()
+        return p.min(0), p.max(0)
+    if isinstance(box, torch.Tensor):
+        b = box.detach().cpu().double().numpy().reshape(2, 3)
+        return b[0], b[1]
+    # (lo, hi) sequences, rounded to the points' dtype as torchvor does
+    lo, hi = (torch.as_tensor(b, dtype=points.dtype).double().numpy() for b in box)
+    return lo, hi
+
+
+def pick_cells(points, count, gen, lo, hi):
+    """`count` random cells plus the cells whose seeds are nearest the box faces
+    (those are clipped by the box, and some may lie on it)."""
+    n = points.shape[0]
+    if n <= count:
+        return np.arange(n)
+    p = points.detach().cpu().double().numpy()
+    gap = np.minimum(p - lo, hi - p).min(1)
+    near_face = np.argsort(gap, kind="stable")[: count // 4]
+    rnd = torch.randperm(n, generator=gen)[: count - len(near_face)].numpy()
+    return np.unique(np.concatenate([near_face, rnd]))
+
+
+def check_against_oracle(cells, points, box, subset, rtol, *, tag="", conditioning=0.0):
+    """Compare cells `subset` with the Qhull oracle (box = (lo, hi) numpy).
+
+    `conditioning` > 0 adds, for sliver cells whose faces are fixed only to the
+    dtype's resolution, an absolute volume tolerance of conditioning * eps * R * A
+    (R: cell radius about the seed, A: cell surface area), carried over to the
+    centroid (times R / V) and the second moment (times R^2)."""
+    lo, hi = box
+    p = points.detach().cpu().double().numpy()
+    vol = cells.volume.detach().cpu().double().numpy()
+    cen = cells.centroid.detach().cpu().double().numpy()
+    m2 = cells.second_moment.detach().cpu().double().numpy()
+    status = cells.status.cpu().numpy()
+    for i in subset:
+        ref = voronoi_cell_oracle(p, int(i), (lo, hi))
+        where = f"{tag} cell {i} (seed {p[i].tolist()})"
+        if ref.duplicate:
+            assert status[i] == CellStatus.DUPLICATE, f"{where}: duplicate, status {status[i]}"
+            assert vol[i] == 0 and m2[i] == 0, f"{where}: duplicate with volume {vol[i]}, moment {m2[i]}"
+            np.testing.assert_array_equal(cen[i], p[i], err_msg=f"{where}: duplicate centroid")
+            continue
+        assert status[i] == CellStatus.SUCCESS, f"{where}: status {status[i]}"
+        size = max(ref.radius, ref.volume ** (1 / 3))
+        slack = 0.0
+        if conditioning:
+            eps = float(torch.finfo(cells.volume.dtype).eps)
+            slack = conditioning * eps * ref.radius * ref.area
+        assert abs(vol[i] - ref.volume) <= rtol * ref.volume + slack, (
+            f"{where}: volume {vol[i]!r} vs oracle {ref.volume!r} (rel {abs(vol[i] / ref.volume - 1):.2e})")
+        err = np.abs(cen[i] - ref.centroid).max()
+        # plus the rounding of an absolute coordinate to the output dtype (large offsets)
+        ulp = np.abs(ref.centroid).max() * float(torch.finfo(cells.centroid.dtype).eps)
+        assert err <= rtol * size + ulp + slack * ref.radius / ref.volume, (
+            f"{where}: centroid {cen[i].tolist()} vs oracle {ref.centroid.tolist()} (err {err:.2e}, size {size:.2e})")
+        assert abs(m2[i] - ref.second_moment) <= rtol * ref.second_moment + slack * ref.radius ** 2, (
+            f"{where}: second moment {m2[i]!r} vs oracle {ref.second_moment!r} "
+            f"(rel {abs(m2[i] / ref.second_moment - 1):.2e})")
+
+
+def check_global(cells, points, boxes, dtype, batch=None):
+    """Statuses, no NaN/poison left, sum of volumes = box volume and
+    sum(volume * centroid) = box volume * box centre, per cloud."""
+    n = points.shape[0]
+    assert cells.volume.shape == (n,) and cells.centroid.shape == (n, 3)
+    assert cells.second_moment.shape == (n,) and cells.status.shape == (n,) and cells.neighbors.shape == (n,)
+    assert cells.volume.dtype == dtype and cells.centroid.dtype == dtype and cells.second_moment.dtype == dtype
+    assert cells.status.dtype == torch.int8 and cells.neighbors.dtype == torch.int32
+    for t in cells:
+        assert t.device == points.device
+    status = cells.status.cpu()
+    ok = (status == CellStatus.SUCCESS) | (status == CellStatus.DUPLICATE)
+    assert ok.all(), f"failed cells: {torch.nonzero(~ok).flatten().tolist()[:20]}, status {status[~ok].unique()}"
+    vol = cells.volume.cpu().double()
+    cen = cells.centroid.cpu().double()
+    m2 = cells.second_moment.cpu().double()
+    for name, t in (("volume", vol), ("centroid", cen), ("second_moment", m2)):
+        assert torch.isfinite(t).all(), f"non-finite {name} in successful cells"
+    assert (vol >= 0).all() and (m2 >= 0).all()
+    assert (cells.neighbors.cpu() >= 0).all()
+    dup = status == CellStatus.DUPLICATE
+    if dup.any():
+        assert (vol[dup] == 0).all() and (m2[dup] == 0).all()
+        assert torch.equal(cen[dup], points.cpu().double()[dup])
+    b = torch.zeros(n, dtype=torch.long) if batch is None else batch.cpu()
+    for k, (lo, hi) in enumerate(boxes):
+        mine = b == k
+        if not mine.any():
+            continue
+        box_volume = float(np.prod(hi - lo))
+        centre = torch.as_tensor((lo + hi) / 2)
+        total = vol[mine].sum().item()
+        assert abs(total - box_volume) <= SUM_RTOL[dtype] * box_volume, (
+            f"cloud {k}: sum of volumes {total!r} != box volume {box_volume!r}")
+        moment = (vol[mine, None] * cen[mine]).sum(0)
+        size = float(np.max(hi - lo))
+        err = (moment - box_volume * centre).abs().max().item()
+        # relative to the box size, plus the rounding of absolute centroids (offsets)
+        eps = float(torch.finfo(dtype).eps)
+        tol = box_volume * (10 * SUM_RTOL[dtype] * size + 4 * eps * float(centre.abs().max()))
+        assert err <= tol, (
+            f"cloud {k}: sum(volume * centroid) {moment.tolist()} != box volume * centre "
+            f"{(box_volume * centre).tolist()}")
+
+
+@pytest.fixture(params=["thread", "cooperative"])
+def cells_impl(request, monkeypatch):
+    """Which implementation clips the cells (TORCHVOR_CELLS): one thread per
+    cell (ConvexCell, the CPU's default) or a group of lanes per cell
+    (CooperativeCell: a warp on CUDA, its default; one lane on the CPU). The
+    tests that take this fixture run both on every device."""
+    monkeypatch.setenv("TORCHVOR_CELLS", request.param)
+    return request.param
+
+
+def run(points, box=None, **kwargs):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a RuntimeWarning (failed cell) fails the test
+        return torchvor.voronoi(points, box, **kwargs)
+
+
+# ----------------------------------------------------------- random point sets
+
+
+@pytest.mark.parametrize("kind", ["white", "clustered"])
+def test_random_vs_oracle(device, dtype, gen, seed, kind, cells_impl):
+    if kind == "white":
+        points = rand(1000, gen, dtype, device)
+    else:
+        points = samples.clustered(1000, clusters=12, spread=0.03, seed=seed, dtype=torch.float64)
+        points = points.to(dtype).to(device)
+    for box in (UNIT, None):
+        cells = run(points, box)
+        lohi = box_of(points, box)
+        check_global(cells, points, [lohi], dtype)
+        check_against_oracle(cells, points, lohi, pick_cells(points, 60, gen, *lohi), RTOL[dtype],
+                             tag=f"box={box}")
+
+
+@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "duplicates", "small_k"])
+def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, seed, kind):
+    """The two implementations of a cell (one thread, or a group of lanes:
+    csrc/core/cooperative_cell.h) take the same decisions: the same statuses
+    and neighbour counts, the same integrals up to rounding (the lanes sum
+    the tetrahedra in another order). On the CPU a thread per cell runs the
+    AVX2+FMA loop where the CPU has it, and the lanes the baseline loop: fused
+    and separate roundings moved the security radius by one neighbour in ~6%
+    of clustered sets, so both run the baseline loop here."""
+    monkeypatch.setenv("TORCHVOR_CPU_ISA", "baseline")
+    k = None
+    if kind == "white":
+        points = rand(3000, gen, dtype, device)
+    elif kind == "clustered":
+        points = samples.clustered(3000, seed=seed, dtype=dtype).to(device)
+    elif kind == "lattice":
+        points = samples.lattice(10, dtype=dtype).to(device)
+    elif kind == "duplicates":
+        points = rand(1000, gen, dtype, device)
+        points = torch.cat([points, points[:300]])
+    else:
+        points = rand(3000, gen, dtype, device)
+        k = 4  # every cell retried: the later passes too
+    results = {}
+    for impl in ("thread", "cooperative"):
+        monkeypatch.setenv("TORCHVOR_CELLS", impl)
+        results[impl] = torchvor.voronoi(points, UNIT, k=k)
+    thread, coop = results["thread"], results["cooperative"]
+    check_global(coop, points, [box_of(points, UNIT)], dtype)
+    assert torch.equal(thread.status, coop.status)
+    assert torch.equal(thread.neighbors, coop.neighbors)
+    rtol = RTOL[dtype]
+    size = float(thread.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(coop.volume, thread.volume, rtol=rtol, atol=rtol * size ** 3)
+    torch.testing.assert_close(coop.second_moment, thread.second_moment, rtol=rtol, atol=rtol * size ** 5)
+    torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
+
+
+@pytest.mark.parametrize("k", [4, None])
+def test_cooperative_knn_in_voronoi(monkeypatch, device, dtype, gen, k):
+    """The passes' neighbour searches by a thread or a group of lanes per
+    query (TORCHVOR_KNN) find the same neighbours: equal cells, bit for bit.
+    k=4 retries every cell; k=None adds the pilot."""
+    points = rand(3000, gen, dtype, device)
+    results = {}
+    for impl in ("thread", "cooperative"):
+        monkeypatch.setenv("TORCHVOR_KNN", impl)
+        results[impl] = torchvor.voronoi(points, UNIT, k=k)
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        assert torch.equal(getattr(results["thread"], name), getattr(results["cooperative"], name)), name
+
+
+@pytest.mark.parametrize("kind", ["white", "clustered"])
+def test_cpu_baseline_loop_vs_oracle(monkeypatch, dtype, gen, seed, kind):
+    """On CPUs with AVX2 and FMA the CPU clips cells with a copy of its loop
+    compiled for them (csrc/cpu/isa.h), which every other CPU test exercises
+    there. TORCHVOR_CPU_ISA=baseline forces the baseline loop: it must meet the
+    same oracle and agree with the other copy up to rounding."""
+    if kind == "white":
+        points = rand(1000, gen, dtype, "cpu")
+    else:
+        points = samples.clustered(1000, clusters=12, spread=0.03, seed=seed, dtype=torch.float64).to(dtype)
+    best = run(points, UNIT)
+    monkeypatch.setenv("TORCHVOR_CPU_ISA", "baseline")
+    assert torch.ops.torchvor.cpu_isa() == "baseline"
+    baseline = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(baseline, points, [lohi], dtype)
+    check_against_oracle(baseline, points, lohi, pick_cells(points, 60, gen, *lohi), RTOL[dtype])
+    assert torch.equal(baseline.status, best.status)
+    size = float(best.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(baseline.volume, best.volume, rtol=RTOL[dtype], atol=0)
+    torch.testing.assert_close(baseline.second_moment, best.second_moment, rtol=RTOL[dtype], atol=0)
+    torch.testing.assert_close(baseline.centroid, best.centroid, rtol=0, atol=RTOL[dtype] * size)
+
+
+def test_neighbors_radius_of_security(device, gen):
+    """`neighbors` counts the nearest neighbours a cell used: every true Voronoi
+    neighbour is among them, and the next one is beyond twice the cell radius."""
+    points = rand(600, gen, torch.float64, device)
+    cells = run(points, UNIT)
+    p = points.cpu().numpy()
+    _, order = brute_force_knn(points.cpu(), len(p) - 1)  # full (distance, index) order
+    used = cells.neighbors.cpu().numpy()
+    box = (np.zeros(3), np.ones(3))
+    for i in pick_cells(points, 60, gen, *box):
+        ref = voronoi_cell_oracle(p, int(i), box)
+        rank = {int(j): r for r, j in enumerate(order[i])}
+        needed = max(rank[int(j)] for j in ref.facet_neighbors) + 1
+        assert used[i] >= needed, f"cell {i}: used {used[i]} neighbours, its facets need {needed}"
+        if used[i] < len(p) - 1:
+            nxt = order[i, used[i]]
+            d = np.linalg.norm(p[nxt] - p[i])
+            assert d >= 2 * ref.radius * (1 - 1e-9), (
+                f"cell {i}: stopped at {used[i]} neighbours but the next one (dist {d}) is within "
+                f"2 x cell radius {ref.radius}")
+
+
+def test_sums_larger_random(device, dtype, gen):
+    """Global identities on a larger cloud (no oracle)."""
+    points = rand(5000, gen, dtype, device)
+    cells = run(points, UNIT)
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+
+
+# --------------------------------------------------------------------- lattices
+
+
+def lattice_expectations(cells, points, edge, dtype, rtol):
+    vol = cells.volume.cpu().double()
+    cen = cells.centroid.cpu().double()
+    m2 = cells.second_moment.cpu().double()
+    p = points.cpu().double()
+    a = np.asarray(edge, dtype=np.float64)
+    volume = float(np.prod(a))
+    moment = volume * float((a ** 2).sum()) / 12  # integral of |x - centre|^2 over a box
+    assert (cells.status.cpu() == CellStatus.SUCCESS).all()
+    err = (vol - volume).abs().max().item()
+    assert err <= rtol * volume, f"lattice volumes off by {err:.3e} (cell volume {volume:.3e})"
+    err = (cen - p).abs().max().item()
+    assert err <= rtol * a.max(), f"lattice centroids off by {err:.3e} (cell size {a.max():.3e})"
+    err = (m2 - moment).abs().max().item()
+    assert err <= rtol * moment, f"lattice second moments off by {err:.3e} (expected {moment:.3e})"
+
+
+@pytest.mark.parametrize("m", [3, 7, 10])
+def test_lattice_exact(device, dtype, m, cells_impl):
+    """samples.lattice(m): every cell is a cube of volume 1/m^3 centred on its point."""
+    points = samples.lattice(m, dtype=dtype).to(device)
+    cells = run(points, UNIT)
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+    lattice_expectations(cells, points, [1 / m] * 3, dtype, {torch.float64: 1e-12, torch.float32: 1e-5}[dtype])
+
+
+def test_lattice_scaled_offset_float64(device, gen):
+    """Lattice scaled by 1e-3 and moved to 1e4: relative to the cell size the
+    inputs carry ~1e-8 rounding, so the cube volumes hold to ~1e-7 and the
+    oracle (same rounded inputs) to 1e-10."""
+    m = 6
+    points = (samples.lattice(m) * 1e-3 + 1e4).to(device)
+    box = ([1e4] * 3, [1e4 + 1e-3] * 3)
+    cells = run(points, box)
+    lohi = box_of(points, box)
+    check_global(cells, points, [lohi], torch.float64)
+    lattice_expectations(cells, points, [1e-3 / m] * 3, torch.float64, 1e-7)
+    check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), 1e-10)
+
+
+def test_lattice_flat_box(device, dtype, cells_impl):
+    """Lattice squeezed into a 1 x 1 x 0.001 box: flat cells of 1/m x 1/m x 0.001/m."""
+    m = 6
+    scale = torch.tensor([1.0, 1.0, 1e-3], dtype=torch.float64)
+    points = (samples.lattice(m) * scale).to(dtype).to(device)
+    box = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1e-3]], dtype=dtype, device=device)
+    cells = run(points, box)
+    check_global(cells, points, [box_of(points, box)], dtype)
+    lattice_expectations(cells, points, [1 / m, 1 / m, 1e-3 / m], dtype,
+                         {torch.float64: 1e-10, torch.float32: 1e-4}[dtype])
+
+
+def test_lattice_single_layer(device, dtype):
+    """One layer of an m x m grid in a cube: square columns spanning the box."""
+    m = 8
+    axis = (torch.arange(m, dtype=torch.float64) + 0.5) / m
+    y, x = torch.meshgrid(axis, axis, indexing="ij")
+    points = torch.stack([x.flatten(), y.flatten(), torch.full((m * m,), 0.5, dtype=torch.float64)], 1)
+    points = points.to(dtype).to(device)
+    cells = run(points, UNIT)
+    lattice_expectations(cells, points, [1 / m, 1 / m, 1.0], dtype,
+                         {torch.float64: 1e-12, torch.float32: 1e-5}[dtype])
+
+
+# ---------------------------------------------------------- awkward geometries
+
+
+@pytest.mark.parametrize("spread", [1e-3, 1e-5, 1e-6])
+def test_tight_clusters(device, dtype, gen, spread, cells_impl):
+    """Clusters of 40 points with Gaussian spread 1e-3 .. 1e-6 (far above the
+    float64 resolution; 1e-6 is ~16 float32 ulps). The clusters' outer cells are
+    needles (~1e-5 wide, ~0.1 long) whose faces float32 fixes only to about
+    eps * R: float32 is compared with a conditioning allowance (measured errors
+    reach ~70 eps R A, i.e. up to 35% of a 5e-11 needle's volume)."""
+    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    points = centres.repeat_interleave(40, 0) + spread * torch.randn(320, 3, generator=gen, dtype=torch.float64)
+    points = points.clamp(0, 1).to(dtype).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    check_against_oracle(cells, points, lohi, pick_cells(points, 30, gen, *lohi), RTOL[dtype],
+                         conditioning=256.0 if dtype == torch.float32 else 0.0)
+
+
+def test_isolated_point_and_tight_cluster_regression(device, cells_impl):
+    """Minimal float64 case found by test_tight_clusters: a point 0.5 away from a
+    cluster of 5 points spread over ~1e-6. Its cell is cut by 5 nearly identical
+    bisectors; it came back BOUNDARY_ERROR (NaN) after every recovery pass."""
+    points = torch.tensor([
+        [0.2808163687166727, 0.5465951753340205, 0.5700229974517792],
+        [0.645556639486295, 0.6963005660028954, 0.28212514775911424],
+        [0.645556509586697, 0.6963016712265706, 0.282123828585993],
+        [0.6455563428642276, 0.696300099215462, 0.2821248385088811],
+        [0.645555560803219, 0.6963008066546875, 0.2821215098277126],
+        [0.6455553229128691, 0.6963016050455724, 0.2821243632640453]], dtype=torch.float64).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], torch.float64)
+    check_against_oracle(cells, points, lohi, range(6), 1e-10)
+
+
+def test_needle_cell_exact_float64(device, cells_impl):
+    """Regression found by test_tight_clusters (seed 1047518939): cell 59 is a
+    needle (~1e-5 wide, ~0.1 long, volume 1.5e-11) of a cluster point. The
+    paper's tetrahedra (feet of the seed on far planes) cancel on it (their
+    absolute volumes sum to ~3e6 times the cell's) and float64 came out 7e-10
+    off; the cell must be flagged ILL_CONDITIONED and recomputed in
+    double-double. Reference values: exact rational arithmetic (Fractions) over
+    the cell's half-spaces; Qhull's volume is 1.7e-11 off. (Only with all 320
+    points: the cell alone with its 15 facet neighbours comes out right even
+    without the recomputation.)"""
+    gen = torch.Generator()
+    gen.manual_seed(1047518939)
+    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    points = centres.repeat_interleave(40, 0) + 1e-5 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
+    points = points.clamp(0, 1)
+    assert points[59].tolist() == [0.35760402697859545, 0.8997942077279265, 0.6421634167118496]
+    cells = run(points.to(device), UNIT)
+    assert cells.status[59].item() == CellStatus.SUCCESS
+    assert cells.volume[59].item() == pytest.approx(1.4992333652678265e-11, rel=1e-12, abs=0)
+    assert cells.second_moment[59].item() == pytest.approx(1.8417640051644332e-14, rel=1e-12, abs=0)
+    check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
+
+
+def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
+    """Found by scanning tight clusters (spread 1e-6, seed 25): cell 5's
+    tetrahedra cancel beyond float32's resolution. Computed in float32 it came
+    out 2.8e-4 off the float64 computation of the same (float32-rounded)
+    points; flagged ILL_CONDITIONED and recomputed in float64, it must match
+    that to float32 output rounding (the scan's worst cell: 3e-6)."""
+    gen = torch.Generator()
+    gen.manual_seed(25)
+    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    points = centres.repeat_interleave(40, 0) + 1e-6 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
+    points = points.clamp(0, 1).float()
+    cells = run(points.to(device), UNIT)
+    reference = run(points.double(), UNIT)
+    assert cells.status[5].item() == CellStatus.SUCCESS
+    assert cells.volume[5].item() == pytest.approx(reference.volume[5].item(), rel=1e-5, abs=0)
+    assert cells.second_moment[5].item() == pytest.approx(reference.second_moment[5].item(), rel=1e-5, abs=0)
+
+
+def test_flat_box_random(device, dtype, gen, cells_impl):
+    lo, hi = [0.0, 0.0, 0.0], [1.0, 1.0, 1e-3]
+    points = rand(600, gen, dtype, device, lo, hi)
+    box = (lo, hi)
+    cells = run(points, box)
+    lohi = box_of(points, box)
+    check_global(cells, points, [lohi], dtype)
+    check_against_oracle(cells, points, lohi, pick_cells(points, 50, gen, *lohi), RTOL[dtype])
+
+
+def test_nearly_planar_points(device, gen):
+    """z = 0.5 + 1e-9 * noise: every cell is a column through the unit cube."""
+    points = rand(400, gen, torch.float64, device)
+    points[:, 2] = 0.5 + 1e-9 * (2 * torch.rand(400, generator=gen, dtype=torch.float64) - 1).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], torch.float64)
+    check_against_oracle(cells, points, lohi, pick_cells(points, 50, gen, *lohi), 1e-10)
+
+
+def test_close_pairs(device, dtype, gen, cells_impl):
+    """Points 1e-7 apart (float64) or a few ulps apart (float32)."""
+    base = rand(300, gen, torch.float64, "cpu", 0.1, 0.9)
+    direction = torch.nn.functional.normalize(torch.randn(20, 3, generator=gen, dtype=torch.float64), dim=1)
+    gap = 1e-7 if dtype == torch.float64 else 3e-6
+    partners = base[:20] + gap * direction
+    points = torch.cat([base, partners]).to(dtype)
+    assert ((points[:20] - points[300:]).abs().sum(1) > 0).all()  # not rounded together
+    points = points.to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    subset = np.concatenate([np.arange(20), np.arange(300, 320), np.arange(20, 300, 15)])
+    check_against_oracle(cells, points, lohi, subset, RTOL[dtype])
+
+
+def test_points_on_box_boundary(device, dtype, gen):
+    """Seeds on faces, edges and corners of the box."""
+    points = rand(300, gen, dtype, device)
+    points[:6, 0] = 0.0
+    points[6:12, 1] = 1.0
+    points[12:16, :2] = 0.0
+    points[16] = torch.tensor([1.0, 1.0, 1.0])
+    points[17] = torch.tensor([0.0, 1.0, 0.0])
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    check_against_oracle(cells, points, lohi, np.arange(40), RTOL[dtype])
+
+
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_few_points(device, dtype, gen, n, cells_impl):
+    lo, hi = [-1.0, 0.0, 2.0], [1.0, 0.5, 5.0]
+    points = rand(n, gen, dtype, device, lo, hi)
+    cells = run(points, (lo, hi))
+    lohi = box_of(points, (lo, hi))
+    check_global(cells, points, [lohi], dtype)
+    check_against_oracle(cells, points, lohi, range(n), RTOL[dtype])
+    if n == 1:  # the whole box
+        size = np.array(hi) - np.array(lo)
+        assert cells.volume.item() == pytest.approx(float(np.prod(size)), rel=RTOL[dtype], abs=0)
+        # a sum of signed tetrahedra: a few ulps of the coordinates (float32
+        # once gave 8 ulps at z = 3.5, i.e. 1.9e-6, seed 3952057584)
+        scale = float(np.abs(np.array(lo + hi)).max())
+        torch.testing.assert_close(cells.centroid[0].cpu().double(),
+                                   torch.tensor((np.array(lo) + np.array(hi)) / 2), rtol=0,
+                                   atol=32 * torch.finfo(dtype).eps * scale)
+        assert cells.neighbors.item() == 0
+
+
+def test_two_points_halves(device, dtype):
+    points = torch.tensor([[0.25, 0.5, 0.5], [0.75, 0.5, 0.5]], dtype=dtype, device=device)
+    cells = run(points, UNIT)
+    torch.testing.assert_close(cells.volume, torch.full((2,), 0.5, dtype=dtype, device=device))
+    torch.testing.assert_close(cells.centroid, points)
+    expected = 0.5 * (0.25 + 1 + 1) / 12  # box 0.5 x 1 x 1 about its centre
+    torch.testing.assert_close(cells.second_moment, torch.full((2,), expected, dtype=dtype, device=device))
+
+
+def test_single_point_bounding_box(device, dtype):
+    """box=None with one point: a degenerate (zero-size) box, an empty cell."""
+    points = torch.tensor([[0.3, 0.4, 0.5]], dtype=dtype, device=device)
+    cells = run(points)
+    assert cells.volume.item() == 0 and cells.second_moment.item() == 0
+    assert torch.equal(cells.centroid, points)
+    assert cells.status.item() in (CellStatus.SUCCESS, CellStatus.DUPLICATE)
+
+
+def test_coplanar_points_bounding_box(device, dtype, gen):
+    """box=None around coplanar points: the box is flat, every cell has volume 0,
+    and no NaN comes out."""
+    points = rand(50, gen, dtype, device)
+    points[:, 2] = 0.5
+    cells = run(points)
+    assert (cells.volume == 0).all() and (cells.second_moment == 0).all()
+    assert torch.isfinite(cells.centroid).all()
+    assert ((cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)).all()
+
+
+@pytest.mark.parametrize("box", [([-1.0, 0.0, 0.2], [2.0, 1.5, 0.7]), ([-100.0] * 3, [100.0] * 3)],
+                         ids=["near", "huge"])
+def test_explicit_larger_box(device, dtype, gen, box):
+    """A box well beyond the points: hull cells reach the box and need (almost) all
+    points. In the huge box they are cones ~100 long whose faces come from points
+    ~0.03 apart: float32 gets the conditioning allowance of test_tight_clusters
+    (seen on CUDA: 4e-4 relative on a 6.3-volume cone, ~2 eps R A)."""
+    points = rand(500, gen, dtype, device, 0.3, 0.6)
+    cells = run(points, box)
+    lohi = box_of(points, box)
+    check_global(cells, points, [lohi], dtype)
+    huge32 = dtype == torch.float32 and box[1][0] > 10
+    check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype],
+                         conditioning=256.0 if huge32 else 0.0)
+
+
+def test_quantised_offset_float32(device, gen):
+    """float32 points at 1e4 with spread 0.01: coordinates snap to ~10 values per
+    axis (ulp 1e-3), so the set is a degenerate lattice full of exact duplicates."""
+    points = (1e4 + 0.01 * torch.rand(2000, 3, generator=gen, dtype=torch.float64)).float().to(device)
+    assert len(points.unique(dim=0)) < 1500
+    cells = run(points)
+    lohi = box_of(points, None)
+    check_global(cells, points, [lohi], torch.float32)
+    check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[torch.float32])
+
+
+def test_large_offset_box(device, dtype, gen):
+    """Points and box near 1e4 (relative coordinates keep the precision)."""
+    lo, hi = [1e4, 1e4, 1e4], [1e4 + 1, 1e4 + 1, 1e4 + 1]
+    points = rand(500, gen, dtype, device, lo, hi)
+    for box in ((lo, hi), None):
+        cells = run(points, box)
+        lohi = box_of(points, box)
+        check_global(cells, points, [lohi], dtype)
+        check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype])
+
+
+def test_duplicates(device, dtype, gen, cells_impl):
+    """Exact copies: the lowest index keeps the whole cell; later copies are
+    DUPLICATE with volume 0, centroid = the point and second moment 0."""
+    base = rand(200, gen, dtype, "cpu")
+    copies = torch.randint(0, 200, (100,), generator=gen)
+    points = torch.cat([base, base[copies], base[copies[:30]]])
+    perm = torch.randperm(len(points), generator=gen)
+    points = points[perm].to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    p = points.cpu()
+    first = {}
+    for i, row in enumerate(map(tuple, p.tolist())):
+        first.setdefault(row, i)
+    expected_dup = torch.tensor([first[tuple(r)] != i for i, r in enumerate(p.tolist())])
+    status = cells.status.cpu()
+    assert torch.equal(status == CellStatus.DUPLICATE, expected_dup)
+    assert (status[~expected_dup] == CellStatus.SUCCESS).all()
+    owners = sorted(set(first.values()))
+    subset = np.concatenate([np.array(owners)[:: max(1, len(owners) // 40)],
+                             torch.nonzero(expected_dup).flatten().numpy()[:20]])
+    check_against_oracle(cells, points, lohi, subset, RTOL[dtype])
+
+
+def test_duplicates_many(device, dtype, gen):
+    """Many exact copies (each cloud: 300 points, half of them copied once, a
+    sixth twice): global identities and no NaN in SUCCESS cells. A cell whose
+    neighbours include two copies of one point is cut twice by the same plane."""
+    for _ in range(12):
+        base = rand(300, gen, dtype, "cpu")
+        points = torch.cat([base, base[:150], base[:50]]).to(device)
+        cells = run(points, UNIT)
+        check_global(cells, points, [box_of(points, UNIT)], dtype)
+
+
+@pytest.mark.parametrize("dtype_", [torch.float32, torch.float64], ids=["float32", "float64"])
+def test_duplicate_neighbours_regression(device, dtype_):
+    """Minimal case found by test_duplicates: points 0 and 3 are exact copies, so
+    cell 1 is clipped twice by the same bisector. float32 gave volume NaN with
+    status SUCCESS for cell 1 (silent poison)."""
+    points = torch.tensor([
+        [0.4551128149032593, 0.1561974287033081, 0.6241004467010498],
+        [0.7751314640045166, 0.5810326933860779, 0.3472025990486145],
+        [0.556449830532074, 0.1850108951330185, 0.41748368740081787],
+        [0.4551128149032593, 0.1561974287033081, 0.6241004467010498],
+        [0.7269694209098816, 0.7763248085975647, 0.6628854274749756]], dtype=torch.float32)
+    points = points.to(dtype_).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype_)
+    check_against_oracle(cells, points, lohi, range(5), RTOL[dtype_])
+
+
+def test_all_points_identical(device, dtype, cells_impl):
+    points = torch.full((5, 3), 0.25, dtype=dtype, device=device)
+    cells = run(points, UNIT)
+    assert cells.status.tolist() == [CellStatus.SUCCESS] + [CellStatus.DUPLICATE] * 4
+    assert cells.volume[0].item() == pytest.approx(1.0)
+    assert (cells.volume[1:] == 0).all()
+
+
+# ------------------------------------------------------------------------ batch
+
+
+def test_batch_per_cloud_boxes(device, dtype, gen, cells_impl):
+    sizes = [300, 1, 0, 150, 2]
+    batch = ragged_batch(sizes, device)
+    los = torch.tensor([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0], [0.0, 0.0, 0.0], [-2.0, 1.0, 0.0], [0.0, 0.0, 10.0]],
+                       dtype=torch.float64)
+    his = los + torch.tensor([[1.0, 1.0, 1.0], [1.0, 2.0, 3.0], [1.0, 1.0, 1.0], [0.5, 4.0, 1.0], [1.0, 1.0, 0.1]],
+                             dtype=torch.float64)
+    parts = [rand(s, gen, torch.float64, "cpu", lo, hi) for s, lo, hi in zip(sizes, los, his)]
+    points = torch.cat(parts).to(dtype).to(device)
+    box = torch.stack([los, his], 1).to(dtype).to(device)  # (B, 2, 3)
+    cells = run(points, box, batch=batch)
+    boxes = [(b[0].cpu().double().numpy(), b[1].cpu().double().numpy()) for b in box]
+    check_global(cells, points, boxes, dtype, batch)
+    start = 0
+    for s, lohi in zip(sizes, boxes):
+        if s:
+            part = points[start:start + s]
+            sub = run(part, torch.stack([torch.as_tensor(lohi[0]), torch.as_tensor(lohi[1])]).to(dtype).to(device))
+            # each cloud is its own diagram: same as computing it alone
+            for a, b in zip(cells, sub):
+                assert torch.equal(a[start:start + s], b)
+            check_against_oracle(sub, part, lohi, pick_cells(part, 25, gen, *lohi), RTOL[dtype], tag=f"cloud@{start}")
+        start += s
+
+
+def test_batch_bounding_boxes(device, dtype, gen):
+    """box=None with a batch: each cloud clipped to its own bounding box."""
+    sizes = [200, 0, 120, 3]
+    batch = ragged_batch(sizes, device)
+    points = torch.cat([rand(200, gen, dtype, device), rand(120, gen, dtype, device, 3.0, 3.5),
+                        rand(3, gen, dtype, device, -1.0, 0.0)])
+    cells = run(points, batch=batch)
+    boxes, start = [], 0
+    for s in sizes:
+        part = points[start:start + s].cpu().double().numpy()
+        boxes.append((part.min(0), part.max(0)) if s else (np.zeros(3), np.zeros(3)))
+        start += s
+    check_global(cells, points, boxes, dtype, batch)
+    part = points[200:320]
+    sub = run(part)
+    for a, b in zip(cells, sub):
+        assert torch.equal(a[200:320], b)
+    check_against_oracle(sub, part, boxes[2], pick_cells(part, 30, gen, *boxes[2]), RTOL[dtype])
+
+
+def test_batch_single_cloud_box_shapes(device, dtype, gen):
+    """All box spellings give the same result."""
+    points = rand(300, gen, dtype, device)
+    ref = run(points, UNIT)
+    spellings = [
+        torch.tensor([[0.0, 0, 0], [1, 1, 1]], dtype=dtype, device=device),
+        torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device),
+        (torch.zeros(3), torch.ones(3)),
+        [[0, 0, 0], [1, 1, 1]],
+    ]
+    for box in spellings:
+        got = run(points, box)
+        for a, b in zip(got, ref):
+            assert torch.equal(a, b)
+    batch = torch.zeros(300, dtype=torch.long, device=device)
+    got = run(points, spellings[1], batch=batch)
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b)
+
+
+# ------------------------------------------------------ recovery and chunking
+
+
+def test_small_k_recovery(device, dtype, gen, cells_impl):
+    """k=4 is far too few for any cell: the retry passes must give the exact cells."""
+    points = rand(800, gen, dtype, device)
+    cells = run(points, UNIT, k=4)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    assert (cells.neighbors > 4).any()
+    check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype])
+    ref = run(points, UNIT)
+    # same cells as with the default k (integrals agree to rounding)
+    torch.testing.assert_close(cells.volume, ref.volume, rtol=RTOL[dtype], atol=0)
+    assert torch.equal(cells.status, ref.status)
+
+
+@pytest.mark.parametrize("k", [1, 2, 10000])
+def test_tiny_k(device, gen, k):
+    points = rand(300, gen, torch.float64, device)
+    cells = run(points, UNIT, k=k)
+    check_global(cells, points, [box_of(points, UNIT)], torch.float64)
+
+
+def test_tiny_memory_budget(device, dtype, gen, cells_impl):
+    """memory_budget=1 forces the smallest chunks (1024 cells): identical results."""
+    points = rand(2600, gen, dtype, device)
+    ref = run(points, UNIT)
+    cells = run(points, UNIT, memory_budget=1)
+    for a, b in zip(cells, ref):
+        assert torch.equal(a, b)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    check_against_oracle(cells, points, lohi, pick_cells(points, 30, gen, *lohi), RTOL[dtype])
+    small_k = run(points, UNIT, memory_budget=1, k=4)
+    torch.testing.assert_close(small_k.volume, ref.volume, rtol=RTOL[dtype], atol=0)
+
+
+def test_non_contiguous_points(device, dtype, gen):
+    points = rand(400, gen, dtype, device).t().contiguous().t()
+    assert not points.is_contiguous()
+    cells = run(points, UNIT)
+    ref = run(points.contiguous(), UNIT)
+    for a, b in zip(cells, ref):
+        assert torch.equal(a, b)
+    # strided batch vector and box
+    batch = ragged_batch([150, 250], device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 2, dtype=dtype, device=device)
+    ref = run(points.contiguous(), box, batch=batch)
+    batch_view = torch.stack([batch, batch], 1)[:, 0]
+    box_view = box.transpose(1, 2).contiguous().transpose(1, 2)
+    assert not batch_view.is_contiguous() and not box_view.is_contiguous()
+    for a, b in zip(run(points, box_view, batch=batch_view), ref):
+        assert torch.equal(a, b)
+
+
+def test_deterministic(device, dtype, seed):
+    points = samples.clustered(3000, seed=seed, dtype=dtype).to(device)
+    a, b = run(points, UNIT), run(points, UNIT)
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_points_outside_box(device, dtype, gen):
+    points = rand(50, gen, dtype, device)
+    bad = points.clone()
+    bad[10, 2] = 1.5
+    with pytest.raises(ValueError, match="box"):
+        torchvor.voronoi(bad, UNIT)
+    bad = points.clone()
+    bad[3, 0] = -1e-3
+    with pytest.raises(ValueError, match="box"):
+        torchvor.voronoi(bad, UNIT)
+    # a batch element outside its own box (but inside another's)
+    batch = ragged_batch([25, 25], device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]], [[2.0, 2, 2], [3, 3, 3]]], dtype=dtype, device=device)
+    with pytest.raises(ValueError, match="box"):
+        torchvor.voronoi(points, box, batch=batch)
+
+
+def test_bad_values(device, dtype):
+    points = torch.rand(30, 3, dtype=dtype, device=device)
+    for value in (float("nan"), float("inf"), -float("inf")):
+        bad = points.clone()
+        bad[4, 1] = value
+        with pytest.raises(ValueError, match="points"):
+            torchvor.voronoi(bad, UNIT)
+        with pytest.raises(ValueError, match="box"):
+            torchvor.voronoi(points, ([0, 0, 0], [1, value, 1]))
+    with pytest.raises(ValueError, match="box"):
+        torchvor.voronoi(points, ([0, 0, 1], [1, 1, 0]))  # lo > hi
+    with pytest.raises(ValueError, match="k"):
+        torchvor.voronoi(points, UNIT, k=0)
+    with pytest.raises(ValueError, match="memory_budget"):
+        torchvor.voronoi(points, UNIT, memory_budget=0)
+
+
+def test_bad_values_with_batch(device, dtype):
+    """With a batch, NaN/Inf points are caught by their own check; without one,
+    by the bounds (point_bounds). Both say "points", whichever element holds
+    them, also next to an empty batch element."""
+    points = torch.rand(40, 3, dtype=dtype, device=device)
+    batch = torch.tensor([0] * 20 + [2] * 20, device=device)  # element 1 is empty
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 3, dtype=dtype, device=device)
+    assert run(points, box, batch=batch).status.eq(CellStatus.SUCCESS).all()
+    for value in (float("nan"), float("inf"), -float("inf")):
+        for row in (3, 33):
+            bad = points.clone()
+            bad[row, 2] = value
+            with pytest.raises(ValueError, match="points contains NaN or Inf"):
+                torchvor.voronoi(bad, box, batch=batch)
+            with pytest.raises(ValueError, match="points contains NaN or Inf"):
+                torchvor.voronoi(bad, UNIT)
+
+
+def test_bad_shapes_and_types(device):
+    points = torch.rand(30, 3, device=device)
+    for shape in [(30, 2), (30,), (30, 3, 1), (90,)]:
+        with pytest.raises(ValueError, match="points"):
+            torchvor.voronoi(torch.rand(shape, device=device), UNIT)
+    for box in [torch.zeros(3, 2), torch.zeros(2, 2, 2), torch.zeros(6), ([0, 0], [1, 1])]:
+        with pytest.raises(ValueError, match="box"):
+            torchvor.voronoi(points, box)
+    for dt in (torch.int64, torch.int32, torch.float16, torch.bool):
+        with pytest.raises(TypeError, match="points"):
+            torchvor.voronoi(points.to(dt), UNIT)
+    with pytest.raises(TypeError, match="points"):
+        torchvor.voronoi(points.tolist(), UNIT)
+    with pytest.raises(TypeError, match="box"):  # the op itself: box dtype must match
+        torch.ops.torchvor.voronoi_cells(points, torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64,
+                                                              device=device))
+
+
+def test_bad_batch(device):
+    points = torch.rand(20, 3, device=device)
+    good = ragged_batch([10, 10], device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 2, device=device)
+    run(points, box, batch=good)
+    with pytest.raises(ValueError, match="batch"):
+        torchvor.voronoi(points, box, batch=good.flip(0))
+    with pytest.raises(ValueError, match="batch"):
+        torchvor.voronoi(points, box, batch=good - 1)
+    with pytest.raises(ValueError, match="batch"):
+        torchvor.voronoi(points, box, batch=good[:-1])
+    with pytest.raises(TypeError, match="batch"):
+        torchvor.voronoi(points, box, batch=good.int())
+    with pytest.raises(ValueError, match="box"):  # 2 clouds, 1 box
+        torchvor.voronoi(points, box[:1], batch=good)
+    with pytest.raises(ValueError, match="box"):  # several boxes without batch
+        torchvor.voronoi(points, box)
+
+
+def test_on_failure_values(device, gen):
+    points = rand(100, gen, torch.float64, device)
+    with pytest.raises(ValueError, match="on_failure"):
+        torchvor.voronoi(points, UNIT, on_failure="ignore")
+    with pytest.raises(ValueError, match="on_failure"):
+        torchvor.voronoi(points, UNIT, on_failure=None)
+    results = []
+    for mode in ("raise", "warn", "flag"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            results.append(torchvor.voronoi(points, UNIT, on_failure=mode))
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert torch.equal(a, b)
+
+
+def sphere_around_centre(n, dtype, device):
+    """A point at the centre of the unit cube and n points on a sphere around it
+    (Fibonacci spiral): the centre cell has n facets, more than any cell array."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    phi = torch.acos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    s = torch.stack([torch.cos(theta) * torch.sin(phi), torch.sin(theta) * torch.sin(phi), torch.cos(phi)], 1)
+    return torch.cat([torch.full((1, 3), 0.5, dtype=torch.float64), 0.5 + 0.3 * s]).to(dtype).to(device)
+
+
+def test_failure_reporting(device, dtype, gen, cells_impl):
+    """A cell that cannot be represented (400 facets) is reported, never silent:
+    "raise" -> RuntimeError, "warn" -> RuntimeWarning, "flag" -> quiet; a failure
+    status and NaN outputs for that cell, exact results for the others."""
+    points = sphere_around_centre(400, dtype, device)
+    with pytest.raises(RuntimeError, match="could not be computed"):
+        torchvor.voronoi(points, UNIT, on_failure="raise")
+    with pytest.warns(RuntimeWarning, match="could not be computed"):
+        warned = torchvor.voronoi(points, UNIT, on_failure="warn")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cells = torchvor.voronoi(points, UNIT, on_failure="flag")
+    for a, b in zip(warned, cells):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)
+    status = cells.status.cpu()
+    failed = (status != CellStatus.SUCCESS) & (status != CellStatus.DUPLICATE)
+    assert failed[0] and not failed[1:].any(), status
+    assert status[0] in (CellStatus.TOO_MANY_PLANES, CellStatus.TOO_MANY_VERTICES)
+    assert torch.isnan(cells.volume[0]) and torch.isnan(cells.centroid[0]).all()
+    assert torch.isnan(cells.second_moment[0])
+    assert torch.isfinite(cells.volume[1:]).all() and torch.isfinite(cells.centroid[1:]).all()
+    check_against_oracle(cells, points, box_of(points, UNIT), range(1, 401, 23), RTOL[dtype])
+
+
+@pytest.mark.skipif(not has_cuda, reason="needs CUDA")
+def test_device_mismatch():
+    points = torch.rand(20, 3)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]])
+    with pytest.raises(ValueError, match="box"):
+        torch.ops.torchvor.voronoi_cells(points.cuda(), box)
+    with pytest.raises(ValueError, match="batch"):
+        torchvor.voronoi(points.cuda(), UNIT, batch=torch.zeros(20, dtype=torch.long))
+    with pytest.raises(ValueError, match="box"):
+        torch.ops.torchvor.voronoi_cells(points, box.cuda())
+    with pytest.raises(ValueError, match="batch"):
+        torchvor.voronoi(points, UNIT, batch=torch.zeros(20, dtype=torch.long, device="cuda"))
+
+
+def test_empty_points(device, dtype):
+    cells = torchvor.voronoi(torch.empty(0, 3, dtype=dtype, device=device), UNIT)
+    assert cells.volume.shape == (0,) and cells.centroid.shape == (0, 3)
+    cells = torchvor.voronoi(torch.empty(0, 3, dtype=dtype, device=device))
+    assert cells.status.shape == (0,)
+
+
+# ---------------------------------------------------- opcheck / torch.compile
+
+
+def test_opcheck_voronoi(device, dtype, gen):
+    points = rand(30, gen, dtype, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
+    torch.library.opcheck(torch.ops.torchvor.voronoi_cells.default, (points, box, None, 40, 1 << 20))
+    torch.library.opcheck(torch.ops.torchvor.voronoi_cells.default, (points, box, None, 3, 1))
+    batch = ragged_batch([12, 0, 18], device)
+    boxes = box.expand(3, 2, 3).contiguous()
+    torch.library.opcheck(torch.ops.torchvor.voronoi_cells.default, (points, boxes, batch, 8, 1 << 20))
+
+
+def test_compile_voronoi(device, dtype, gen):
+    torch._dynamo.reset()
+
+    def f(p):
+        cells = torchvor.voronoi(p, UNIT)
+        return cells.volume, cells.centroid, cells.second_moment, cells.status, cells.neighbors
+
+    def g(p):  # default (bounding) box and arithmetic around the op
+        cells = torchvor.voronoi(p)
+        return (cells.volume * 2).sum(), cells.centroid - p
+
+    compiled_f = torch.compile(f, fullgraph=True)
+    compiled_g = torch.compile(g, fullgraph=True)
+    for n in (150, 260):
+        points = rand(n, gen, dtype, device)
+        for a, b in zip(compiled_f(points), f(points)):
+            assert torch.equal(a, b)
+        for a, b in zip(compiled_g(points), g(points)):
+            torch.testing.assert_close(a, b)
+
+
+# -------------------------------------------------------- CPU / CUDA parity
+
+
+@pytest.mark.skipif(not has_cuda, reason="needs CUDA")
+@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "duplicates", "batch", "small_k"])
+def test_cpu_cuda_parity(dtype, gen, seed, kind):
+    batch, box, k = None, UNIT, None
+    if kind == "white":
+        points = rand(4000, gen, dtype, "cpu")
+    elif kind == "clustered":
+        points = samples.clustered(4000, seed=seed, dtype=dtype)
+    elif kind == "lattice":
+        points = samples.lattice(12, dtype=dtype)
+    elif kind == "duplicates":
+        points = rand(1000, gen, dtype, "cpu")
+        points = torch.cat([points, points[:300]])
+    elif kind == "batch":
+        batch = ragged_batch([1500, 0, 2, 900], "cpu")
+        points = rand(2402, gen, dtype, "cpu")
+        box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 4, dtype=dtype)
+    else:
+        points = rand(3000, gen, dtype, "cpu")
+        k = 4
+    cpu = torchvor.voronoi(points, box, batch=batch, k=k)
+    gpu = torchvor.voronoi(points.cuda(), box if not isinstance(box, torch.Tensor) else box.cuda(),
+                           batch=None if batch is None else batch.cuda(), k=k)
+    assert torch.equal(cpu.status, gpu.status.cpu())
+    rtol = RTOL[dtype]
+    torch.testing.assert_close(gpu.volume.cpu(), cpu.volume, rtol=rtol, atol=rtol * cpu.volume.abs().max().item())
+    torch.testing.assert_close(gpu.centroid.cpu(), cpu.centroid, rtol=rtol, atol=rtol)
+    torch.testing.assert_close(gpu.second_moment.cpu(), cpu.second_moment, rtol=rtol,
+                               atol=rtol * cpu.second_moment.abs().max().item())

@@ -1,0 +1,16 @@
+"""torchvor: k-nearest neighbours and 3D Voronoi cell integrals for PyTorch.
+
+Meshless Voronoi on the GPU (Ray et al. 2018): grid kNN, then every cell clipped
+on its own from its nearest neighbours, with integrals taken on the fly.
+"""
+from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi
+
+__all__ = ["KNN", "CellStatus", "VoronoiCells", "knn", "knn_graph", "voronoi"]
+__version__ = "0.1.0"
+# Lloyd relaxation layer. Note: the function torchvor.lloyd shadows the module
+# attribute of the same name; import module contents with `from torchvor.lloyd import ...`.
+from .cvt import cvt_energy
+from .lloyd import LloydStep, lloyd
+from .nn import LloydRelaxation
+
+__all__ += ["cvt_energy", "lloyd", "LloydStep", "LloydRelaxation"]

@@ -1,0 +1,265 @@
+"""Thin Python layer over ``torch.ops.torchvor``: defaults, named results, fake kernels.
+
+Shapes use N for points, M for queries, B for batch elements (point clouds).
+Bad input raises ``ValueError`` (wrong shape, values, devices) or ``TypeError``
+(wrong dtype), from the C++ checks that name the argument.
+"""
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple, Optional, Sequence, Union
+
+import torch
+
+from . import _C  # noqa: F401  (registers torch.ops.torchvor.*)
+
+BoxLike = Union[torch.Tensor, Sequence]
+
+
+class KNN(NamedTuple):
+    """Result of :func:`knn`.
+
+    dist2: (M, k) squared Euclidean distances, points' dtype, increasing along a row.
+    idx: (M, k) int64 indices into ``points``; ties broken by the lower index.
+    Missing neighbours (a cloud with fewer than k candidates) are ``inf`` / ``-1``.
+    """
+
+    dist2: torch.Tensor
+    idx: torch.Tensor
+
+
+class CellStatus(enum.IntEnum):
+    """Outcome of one Voronoi cell (``VoronoiCells.status``), as in paper §3.4."""
+
+    NOT_COMPUTED = -1
+    SUCCESS = 0
+    SECURITY_RADIUS_NOT_REACHED = 1
+    TOO_MANY_PLANES = 2
+    TOO_MANY_VERTICES = 3
+    BOUNDARY_ERROR = 4
+    DUPLICATE = 5  # exact copy of a lower-index point: volume 0, centroid = the point
+    ILL_CONDITIONED = 6  # the integrals cancel beyond the arithmetic's resolution (retried wider)
+
+
+class VoronoiCells(NamedTuple):
+    """Result of :func:`voronoi`; row i belongs to ``points[i]``.
+
+    volume: (N,) cell volumes.
+    centroid: (N, 3) cell centroids (the point itself for an empty cell).
+    second_moment: (N,) integral over the cell of ``|x - points[i]|^2`` (CVT energy term).
+    status: (N,) int8 :class:`CellStatus` codes.
+    neighbors: (N,) int32 number of nearest neighbours the cell needed
+        (the radius-of-security criterion was met after that many).
+    Floating outputs have the points' dtype; a cell that could not be computed
+    has NaN outputs and a failure status.
+    """
+
+    volume: torch.Tensor
+    centroid: torch.Tensor
+    second_moment: torch.Tensor
+    status: torch.Tensor
+    neighbors: torch.Tensor
+
+
+def knn(
+    points: torch.Tensor,
+    k: int,
+    queries: Optional[torch.Tensor] = None,
+    *,
+    batch: Optional[torch.Tensor] = None,
+    query_batch: Optional[torch.Tensor] = None,
+    exclude_self: Optional[bool] = None,
+) -> KNN:
+    """k nearest neighbours of 3D points on a uniform grid (paper §2).
+
+    Args:
+        points: (N, 3) float32 or float64, CPU or CUDA.
+        k: neighbours per query, ``k >= 1``; any size (large k is slower, not capped).
+        queries: (M, 3), same dtype and device; ``None`` queries the points themselves.
+        batch: (N,) int64 sorted batch vector (PyG convention) for ragged clouds.
+        query_batch: (M,) int64 sorted batch vector of the queries; defaults to
+            ``batch`` when ``queries`` is None, and is required with ``batch``
+            otherwise. Queries only see points of their own batch element.
+        exclude_self: when ``queries`` is None, whether query i skips point i.
+            Default True (a point is not its own neighbour; exact duplicates of
+            it still are, at distance 0). Must be False/None when queries are given.
+
+    Returns:
+        :class:`KNN` ``(dist2, idx)`` of shape (M, k), sorted by distance.
+    """
+    if queries is None:
+        queries = points
+        exclude_self = True if exclude_self is None else exclude_self
+        if query_batch is None:
+            query_batch = batch
+    elif exclude_self:
+        raise ValueError("torchvor.knn: exclude_self=True needs queries=None (queries are the points)")
+    else:
+        exclude_self = False
+        if batch is not None and query_batch is None:
+            raise ValueError("torchvor.knn: query_batch is required when batch and queries are given")
+    if not isinstance(k, int) or isinstance(k, bool):
+        raise TypeError(f"torchvor.knn: k must be an int, got {type(k).__name__}")
+    _check_tensor(points, "points")
+    _check_tensor(queries, "queries")
+    dist2, idx = torch.ops.torchvor.knn.default(points, queries, k, batch, query_batch, exclude_self)
+    return KNN(dist2, idx)
+
+
+def knn_graph(
+    points: torch.Tensor, k: int, batch: Optional[torch.Tensor] = None, loop: bool = False
+) -> torch.Tensor:
+    """k-nearest-neighbour graph in PyG's layout.
+
+    Args:
+        points: (N, 3) float32/float64.
+        k: neighbours per point.
+        batch: optional (N,) int64 sorted batch vector.
+        loop: include the self-loop i -> i (counted among the k).
+
+    Returns:
+        edge_index: (2, E) int64 with ``edge_index[0]`` the neighbour (source) and
+        ``edge_index[1]`` the centre (target), E = N * k when every cloud has more
+        than k points (missing neighbours are dropped, so E can be smaller).
+    """
+    result = knn(points, k, batch=batch, exclude_self=not loop)
+    n = points.shape[0]
+    target = torch.arange(n, device=points.device).repeat_interleave(k)
+    return _drop_missing_edges(torch.stack([result.idx.reshape(-1), target]))
+
+
+@torch.library.custom_op("torchvor::drop_missing_edges", mutates_args=())
+def _drop_missing_edges(edge_index: torch.Tensor) -> torch.Tensor:
+    """Drop the columns of a (2, E) edge index whose source is -1 (kNN padding)."""
+    return edge_index[:, edge_index[0] >= 0]
+
+
+@_drop_missing_edges.register_fake
+def _drop_missing_edges_fake(edge_index):
+    # The number of real edges depends on the data: a dynamic size for torch.compile.
+    edges = torch.library.get_ctx().new_dynamic_size()
+    return edge_index.new_empty((2, edges))
+
+
+def as_box(points: torch.Tensor, box: Optional[BoxLike], batch: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Normalise a box argument to a (B, 2, 3) tensor on the points' device and dtype.
+
+    ``box`` may be None (each cloud's bounding box), a pair ``(lo, hi)`` of
+    3-sequences or tensors, a (2, 3) tensor, or a (B, 2, 3) tensor (one box per
+    batch element).
+    """
+    if box is None:
+        if batch is None:
+            if points.shape[0] == 0:
+                return torch.zeros(1, 2, 3, dtype=points.dtype, device=points.device)
+            return torch.stack([points.amin(0), points.amax(0)]).unsqueeze(0)
+        num = int(batch.max()) + 1 if batch.numel() else 1
+        index = batch.unsqueeze(1).expand(-1, 3)
+        lo = torch.full((num, 3), float("inf"), dtype=points.dtype, device=points.device)
+        hi = torch.full((num, 3), float("-inf"), dtype=points.dtype, device=points.device)
+        lo = lo.scatter_reduce(0, index, points, "amin")
+        hi = hi.scatter_reduce(0, index, points, "amax")
+        empty = ~torch.isfinite(lo).all(1)
+        lo[empty] = 0
+        hi[empty] = 0
+        return torch.stack([lo, hi], 1)
+    if isinstance(box, (tuple, list)) and len(box) == 2:
+        if not any(isinstance(b, torch.Tensor) for b in box):  # plain numbers: one copy to the device
+            lo, hi = (torch.as_tensor(b, dtype=points.dtype) for b in box)
+        else:
+            lo, hi = (torch.as_tensor(b, dtype=points.dtype, device=points.device) for b in box)
+        if lo.shape != (3,) or hi.shape != (3,):
+            raise ValueError(f"torchvor: box=(lo, hi) needs lo and hi of shape (3,), got {tuple(lo.shape)}, {tuple(hi.shape)}")
+        return torch.stack([lo, hi]).unsqueeze(0).to(points.device)
+    box = torch.as_tensor(box, dtype=points.dtype, device=points.device)
+    if box.shape == (2, 3):
+        box = box.unsqueeze(0)
+    if box.dim() != 3 or box.shape[1:] != (2, 3):
+        raise ValueError(f"torchvor: box must be (lo, hi), (2, 3) or (B, 2, 3); got shape {tuple(box.shape)}")
+    return box
+
+
+def voronoi(
+    points: torch.Tensor,
+    box: Optional[BoxLike] = None,
+    *,
+    batch: Optional[torch.Tensor] = None,
+    k: Optional[int] = None,
+    on_failure: str = "warn",
+    memory_budget: int = 256 << 20,
+) -> VoronoiCells:
+    """Volume, centroid and second moment of every 3D Voronoi cell, clipped to a box.
+
+    Each cell is computed on its own by clipping the box with the bisectors of
+    its nearest neighbours until the radius of security proves it exact (Ray et
+    al. 2018). Cells that need more neighbours or larger arrays are recomputed
+    automatically; cells whose predicates are inconsistent, or whose integrals
+    cancel beyond what the arithmetic resolves (needle cells of tight
+    clusters), are recomputed in float64, then in double-double arithmetic on
+    the CPU. Nothing fails silently.
+
+    Args:
+        points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``.
+        box: None (bounding box of the points, per batch element), ``(lo, hi)``,
+            a (2, 3) tensor, or (B, 2, 3) with ``batch``.
+        batch: optional (N,) int64 sorted batch vector: each cloud is its own diagram.
+        k: neighbours fetched per cell in the first pass; cells that need more
+            are retried with 1.5 times as many (at least 8 more). Default None: measured on a pilot
+            sample of about 1000 cells (their 90th percentile), which suits
+            blue noise (~16) and white noise (~60) alike.
+        on_failure: what a cell that cannot be computed even after recovery does:
+            ``"raise"`` (RuntimeError), ``"warn"`` (default: RuntimeWarning, NaN
+            outputs) or ``"flag"`` (NaN outputs and status only).
+        memory_budget: bytes for the neighbour buffer of one chunk of cells.
+
+    Returns:
+        :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,
+        the others get volume 0, centroid = the point and status DUPLICATE.
+
+    Raises:
+        ValueError: bad shapes/values, NaN/Inf, points outside the box, k < 1.
+        TypeError: non-floating points or mismatched dtypes.
+    """
+    if on_failure not in ("raise", "warn", "flag"):
+        raise ValueError(f"torchvor.voronoi: on_failure must be 'raise', 'warn' or 'flag', got {on_failure!r}")
+    _check_tensor(points, "points")
+    box_tensor = as_box(points, box, batch)
+    cells = VoronoiCells(*torch.ops.torchvor.voronoi_cells.default(points, box_tensor, batch, k, memory_budget))
+    if on_failure != "flag" and not torch.compiler.is_compiling():
+        failed = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+        if bool(failed.any()):
+            count = int(failed.sum())
+            codes = sorted({CellStatus(int(c)).name for c in cells.status[failed].unique().cpu()})
+            message = f"torchvor.voronoi: {count} cell(s) could not be computed ({', '.join(codes)})"
+            if on_failure == "raise":
+                raise RuntimeError(message)
+            import warnings
+
+            warnings.warn(message, RuntimeWarning, stacklevel=2)
+    return cells
+
+
+def _check_tensor(value, name: str) -> None:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"torchvor: {name} must be a torch.Tensor, got {type(value).__name__}")
+
+
+# ---- fake (meta) kernels: output shapes for torch.compile and opcheck -------------------
+
+
+@torch.library.register_fake("torchvor::knn")
+def _knn_fake(points, queries, k, batch=None, query_batch=None, exclude_self=False):
+    m = queries.shape[0]
+    return queries.new_empty((m, k)), queries.new_empty((m, k), dtype=torch.int64)
+
+
+@torch.library.register_fake("torchvor::voronoi_cells")
+def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=256 << 20):
+    n = points.shape[0]
+    return (
+        points.new_empty((n,)),
+        points.new_empty((n, 3)),
+        points.new_empty((n,)),
+        points.new_empty((n,), dtype=torch.int8),
+        points.new_empty((n,), dtype=torch.int32),
+    )
