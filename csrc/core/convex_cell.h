@@ -396,31 +396,13 @@ struct ConvexCell {
   // cycle (short_cycle_needs_no_walk, cycle_length). The removed triangles
   // are gathered first, so that the search for reverse edges is a short
   // branch-free loop of the same length in every lane.
-  //
-  // With at most 32 planes (tier 0) each removed triangle also gets its
-  // planes as bits, and the search asks which removed triangles hold both
-  // planes of an edge (one AND and one compare a triangle, against the
-  // three compares of has_edge: that loop was half of the blue-noise clip
-  // kernel's instructions, ncu, H100). The two agree: every clip closes its
-  // hole with a fan over a simple cycle, so two planes never share more
-  // than one edge, and the two triangles that hold both planes are the two
-  // sides of that edge, with opposite orientations.
-  static constexpr bool kPlaneBits = MAX_PLANES <= 32;
-
   TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
     uint32_t removed[MAX_TRIANGLES];
-    uint32_t removed_planes[kPlaneBits ? MAX_TRIANGLES : 1];  // bit x: the triangle has plane x
     int count = 0;
     for (int w = 0; w < kMaskWords; ++w) {
-      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u) {
-        const uint32_t corners = triangle[32 * w + lowest_bit(bits)];
-        if constexpr (kPlaneBits) {
-          removed_planes[count] = (1u << corner(corners, 0)) | (1u << corner(corners, 1)) |
-                                  (1u << corner(corners, 2));
-        }
-        removed[count++] = corners;
-      }
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
+        removed[count++] = triangle[32 * w + lowest_bit(bits)];
     }
     on_boundary.clear();
     PlaneSet targets;  // the planes boundary edges go to
@@ -431,16 +413,9 @@ struct ConvexCell {
       const uint32_t corners = removed[i];
       for (int e = 0; e < 3; ++e) {
         const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+        const uint32_t reverse = uint32_t(to) | uint32_t(from) << 8;
         bool interior = false;
-        if constexpr (kPlaneBits) {
-          const uint32_t both = (1u << from) | (1u << to);
-          int holders = 0;  // this triangle, and the one across the edge if it is removed too
-          for (int j = 0; j < count; ++j) holders += (removed_planes[j] & both) == both;
-          interior = holders > 1;
-        } else {
-          const uint32_t reverse = uint32_t(to) | uint32_t(from) << 8;
-          for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
-        }
+        for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
         if (interior) continue;
         // A plane twice on the boundary: not a simple cycle.
         if (on_boundary.test(from) || targets.test(to)) return false;
