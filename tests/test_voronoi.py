@@ -962,6 +962,24 @@ def test_compile_voronoi(device, dtype, gen):
 
 
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
+@pytest.mark.parametrize("blocks_per_sm", ["1", "1000"])
+def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_per_sm):
+    """On CUDA, one thread per cell runs on a capped grid, each thread taking
+    cells a grid apart (CudaExec::for_each_cell); TORCHVOR_CELL_BLOCKS_PER_SM
+    overrides the cap. One block an SM (every thread takes many cells) and
+    more than fit (clamped to what the SM holds) give the default's cells,
+    bit for bit, and none is left unwritten."""
+    points = rand(40000, gen, dtype, "cuda")
+    monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, the retries too
+    default = torchvor.voronoi(points, UNIT, k=24)
+    monkeypatch.setenv("TORCHVOR_CELL_BLOCKS_PER_SM", blocks_per_sm)
+    capped = torchvor.voronoi(points, UNIT, k=24)
+    check_global(capped, points, [box_of(points, UNIT)], dtype)
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        assert torch.equal(getattr(default, name), getattr(capped, name)), name
+
+
+@pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "duplicates", "batch", "small_k"])
 def test_cpu_cuda_parity(dtype, gen, seed, kind):
     batch, box, k = None, UNIT, None
