@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A/B on the GPU machine: builds OLD_TREE (another revision's sources, e.g.
-# `git archive REV | tar -x -C ab_old`, left untracked so the device tool
-# carries it) and this tree side by side under /tmp, then runs
+# `mkdir ab_old && git archive REV | tar -x -C ab_old`; git ignores ab_*/, so
+# name it in the device tool's carry) and this tree side by side under /tmp, then runs
 # benchmarks/ab_time.py on each in turn, ROUNDS times. No pip install: each
 # build is imported through PYTHONPATH (the machine must not have torchvor
 # installed in editable mode, whose import hook would win).
