@@ -307,7 +307,9 @@ struct ConvexCell {
     // plane load is a scattered local access (local memory interleaves the
     // threads' 4-byte words, so one thread's 16-byte plane spans up to four
     // sectors): the fan's three plane loads a vertex were ~30% of the
-    // blue-noise clip kernel's L1 sector traffic (ncu, H100).
+    // blue-noise clip kernel's L1 sector traffic (ncu, H100). Timed alone,
+    // at full residency, it changed nothing (benchmarks/NOTES.md); it stays
+    // as the simpler loop.
     typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
     Plane<T> from_plane = plane[from];
