@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|crossk|bluek|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -32,6 +32,11 @@ for step in "${@:-smoke}"; do
             | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/lanes.log"
         done
       done ;;
+    crossk)  # whole voronoi calls at 1M, thread against warp cells, per kind and first-pass k
+      python3 benchmarks/crossover.py --op k 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossk.log" ;;
+    bluek)  # blue noise against first-pass k (0 = the op's pilot)
+      python3 benchmarks/bench_voronoi.py --device cuda --kinds blue --sizes ${BLUEK_SIZES:-1M,10M} \
+        --k ${BLUEK_K:-0,16,18,20,24} 2>&1 | grep -v USDT | tee "$OUT/bluek.log" ;;
     residency)  # clip kernel against resident blocks per SM of one-thread-per-cell clipping
       python3 benchmarks/sweep_cell_residency.py --device cuda --sizes ${RESIDENCY_SIZES:-1M,10M} 2>&1 \
         | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/residency.log" ;;
