@@ -303,7 +303,10 @@ struct ConvexCell {
     // one, and the volume error stays of the order of the band.
     Mask clipped;
     T kept_radius2;  // the largest |vertex|^2 of the vertices the plane keeps
-    uint32_t next[MAX_PLANES];  // boundary edge from -> to, at `from`: to | (kept slot across it) << 8
+    // Boundary edge from -> to, at `from`: to | (its removed triangle's slot)
+    // << 8 | (the kept one's across it) << 18.
+    uint32_t next[MAX_PLANES];
+    Mask bordered;  // the removed triangles with a boundary edge
     PlaneSet on_boundary;
     int boundary_length = 0;
     uint8_t start = kNone;
@@ -313,7 +316,7 @@ struct ConvexCell {
       if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
       if (num_planes == MAX_PLANES) compact_planes();
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
-      if (removed_boundary(clipped, next, on_boundary, boundary_length, start)) break;
+      if (removed_boundary(clipped, next, bordered, on_boundary, boundary_length, start)) break;
     }
     const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
@@ -332,31 +335,63 @@ struct ConvexCell {
     // blue-noise clip kernel's L1 sector traffic (ncu, H100). Timed alone,
     // at full residency, it changed nothing (benchmarks/NOTES.md); it stays
     // as the simpler loop.
-    // New triangle e = (from, to, p) borders the kept triangle across
+    // New triangle e = (from, to, p) borders the kept triangle K across
     // from -> to, and fan triangles e + 1 (across to -> p) and e - 1 (across
-    // p -> from); the slot after it is known one step ahead, and triangle 0's
-    // neighbours are written last, when the fan's last slot is known.
-    typename Mask::Cursor holes = clipped.cursor();
-    const int old_count = num_triangles;
-    const int first = holes.next();  // a clip removes at least one triangle
-    int slot = first, second = first, previous = first;
-    uint32_t first_kept = 0u;
+    // p -> from). It takes the slot of the removed triangle across from K
+    // when no earlier fan triangle took it, so that K's neighbours stay as
+    // they are; a removed triangle with two or three boundary edges gives
+    // its slot to the first, and the others take spare slots (removed
+    // triangles with no boundary edge, lowest first), then slots after the
+    // last; their K learns the new slot. (With every kept neighbour updated,
+    // the scattered local-memory accesses cost the GPU more than the
+    // quadratic search saved.) A spare slot never holds the removed slot of
+    // another boundary edge, so K's field to update is the one holding the
+    // removed slot. The slot after each new triangle is taken one step
+    // ahead, and triangle 0's neighbours are written last, when the last
+    // slot is known.
+    Mask spare;
+    TV_UNROLL
+    for (int w = 0; w < kMaskWords; ++w) spare.word[w] = clipped.word[w] & ~bordered.word[w];
+    typename Mask::Cursor spares = spare.cursor();
+    int spares_left = removed - bordered.count();
+    Mask taken;
+    taken.clear();
+    const auto take_slot = [&](uint32_t edge_link) -> int {
+      const int gone = int((edge_link >> 8) & kSlotMask);
+      if (!taken.test(gone)) {
+        taken.set(gone);
+        return gone;
+      }
+      if (spares_left > 0) {
+        --spares_left;
+        return spares.next();
+      }
+      return num_triangles++;
+    };
     uint8_t from = start;
     Plane<T> from_plane = plane[from];
+    uint32_t link = next[from];
+    const int first = take_slot(link);
+    int slot = first, second = first, previous = first;
+    uint32_t first_kept = 0u;
     T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
-      const uint32_t link = next[from];
       const uint8_t to = static_cast<uint8_t>(link);
-      const uint32_t kept = link >> 8;
-      const int following = e + 1 == boundary_length ? first
-                            : e + 1 < removed       ? holes.next()
-                                                    : old_count + (e + 1 - removed);
-      // The kept triangle's edge to -> from now borders the new triangle.
-      const uint32_t kept_corners = triangle[kept];
-      int back = 0;
-      TV_UNROLL
-      for (int f = 1; f < 3; ++f) back = corner(kept_corners, f) == to ? f : back;
-      adjacent[kept] = with_slot(adjacent[kept], back, uint32_t(slot));
+      const uint32_t gone = (link >> 8) & kSlotMask;
+      const uint32_t kept = link >> 18;
+      if (uint32_t(slot) != gone) {
+        uint32_t theirs = adjacent[kept];
+        TV_UNROLL
+        for (int f = 0; f < 3; ++f)
+          theirs = uint32_t(slot_across(theirs, f)) == gone ? with_slot(theirs, f, uint32_t(slot)) : theirs;
+        adjacent[kept] = theirs;
+      }
+      uint32_t following_link = 0u;
+      int following = first;
+      if (e + 1 < boundary_length) {
+        following_link = next[to];
+        following = take_slot(following_link);
+      }
       const Plane<T> to_plane = plane[to];
       const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane), from_plane, to_plane, p).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
@@ -369,12 +404,12 @@ struct ConvexCell {
       largest = max_of(largest, v2);
       previous = slot;
       slot = following;
+      link = following_link;
       from = to;
       from_plane = to_plane;
     }
     adjacent[first] = pack_slots(first_kept, uint32_t(second), uint32_t(previous));
-    num_triangles = max_of(old_count, old_count + boundary_length - removed);
-    if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
+    if (boundary_length < removed) fill_holes(spares, removed - boundary_length, spare);
     radius2 = largest;
     return true;
   }
@@ -425,13 +460,14 @@ struct ConvexCell {
   }
 
   // Fewer new triangles than removed ones: move kept triangles from the end
-  // into the `count` holes left, lowest hole first, and shorten the list;
-  // a moved triangle's neighbours learn its new slot.
-  TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& clipped) {
+  // into the `count` holes left (the slots of `vacant` from `holes` on, all
+  // above the slots taken), lowest hole first, and shorten the list; a moved
+  // triangle's neighbours learn its new slot.
+  TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& vacant) {
     int last = num_triangles - 1;  // the highest slot that may still hold a kept triangle
     for (; count > 0; --count) {
       const int hole = holes.next();
-      while (last > hole && clipped.test(last)) --last;  // drop holes at the end
+      while (last > hole && vacant.test(last)) --last;  // drop holes at the end
       if (last <= hole) {  // nothing kept above this hole: the list ends before it
         last = min_of(last, hole - 1);
         break;
@@ -455,14 +491,16 @@ struct ConvexCell {
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
   // reverse is not in R, i.e. whose neighbour across is kept, as a successor
   // map over plane ids (next[x] is valid where `on_boundary` has x; it also
-  // holds the kept neighbour's slot). False if the boundary is not one
+  // holds the slots of the removed triangle and of the kept one across),
+  // and the removed triangles with a boundary edge. False if the boundary is not one
   // simple cycle (short_cycle_needs_no_walk, cycle_length). With the
   // neighbours stored, the search is linear in the removed triangles; the
   // search for reverse edges among them was quadratic, and on the GPU a warp
   // ran it for its largest region: ~52% of the blue-noise clip kernel's
   // instructions (ncu, H100).
-  TV_HD bool removed_boundary(const Mask& clipped, uint32_t* next, PlaneSet& on_boundary,
+  TV_HD bool removed_boundary(const Mask& clipped, uint32_t* next, Mask& bordered, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
+    bordered.clear();
     on_boundary.clear();
     PlaneSet targets;  // the planes boundary edges go to
     targets.clear();
@@ -481,7 +519,8 @@ struct ConvexCell {
           if (on_boundary.test(from) || targets.test(to)) return false;
           on_boundary.set(from);
           targets.set(to);
-          next[from] = uint32_t(to) | uint32_t(across) << 8;
+          next[from] = uint32_t(to) | uint32_t(t) << 8 | uint32_t(across) << 18;
+          bordered.set(t);
           start = from;
           ++length;
         }
