@@ -58,21 +58,6 @@ TV_HD uint32_t box_triangle(int t) {
   }
 }
 
-// The box triangles across the edges of box triangle t: across edge e
-// (corner e to corner e + 1 of box_triangle(t)) at bits 10 * e.
-TV_HD uint32_t box_adjacency(int t) {
-  switch (t) {
-    case 0: return 2u | 1u << 10 | 4u << 20;
-    case 1: return 3u | 5u << 10 | 0u << 20;
-    case 2: return 3u | 0u << 10 | 6u << 20;
-    case 3: return 2u | 7u << 10 | 1u << 20;
-    case 4: return 6u | 0u << 10 | 5u << 20;
-    case 5: return 4u | 1u << 10 | 7u << 20;
-    case 6: return 4u | 7u << 10 | 2u << 20;
-    default: return 5u | 3u << 10 | 6u << 20;
-  }
-}
-
 // Intersection point of three planes (Cramer's rule).
 template <typename T>
 TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
@@ -97,6 +82,13 @@ template <typename T>
 TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance) {
   const T slack = T(1) + T(64) * tolerance;
   return neighbor_dist2 > T(4) * slack * cell_radius2;
+}
+
+// Whether triangle `corners` (a, b, c) has the directed edge with code
+// from | to << 8: its edges (a, b), (b, c), (c, a).
+TV_HD bool has_edge(uint32_t corners, uint32_t code) {
+  return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
+         (((corners >> 16) | (corners & 0xffu) << 8) == code);
 }
 
 // Whether a removed region's boundary of `length` edges is one cycle without
@@ -221,20 +213,13 @@ struct ConvexCell {
   using Scalar = T;
   using Lanes = SingleLane;  // one thread computes the cell
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
-  static_assert(MAX_TRIANGLES <= 1024, "slots are stored in 10 bits");
   static constexpr uint8_t kNone = 255;
-  static constexpr uint32_t kSlotMask = 1023u;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
   using Mask = BitSet<kMaskWords>;
   using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
 
   Plane<T> plane[MAX_PLANES];
   uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
-  // The slots of the triangles across triangle t's edges a -> b, b -> c and
-  // c -> a, packed as 10 bits each (pack_slots): the clip finds the boundary
-  // of the removed region by testing its triangles' neighbours against the
-  // clip mask, in time linear in the removed triangles.
-  uint32_t adjacent[MAX_TRIANGLES];
   CachedVertex<T> vertex[MAX_TRIANGLES];  // vertex of triangle t
   int32_t num_planes;
   int32_t num_triangles;
@@ -247,12 +232,6 @@ struct ConvexCell {
 
   TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
   TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
-  TV_HD static uint32_t pack_slots(uint32_t s0, uint32_t s1, uint32_t s2) { return s0 | s1 << 10 | s2 << 20; }
-  TV_HD static int slot_across(uint32_t adjacency, int e) { return int((adjacency >> (10 * e)) & kSlotMask); }
-  // `adjacency` with the slot across edge e replaced.
-  TV_HD static uint32_t with_slot(uint32_t adjacency, int e, uint32_t slot) {
-    return (adjacency & ~(kSlotMask << (10 * e))) | slot << (10 * e);
-  }
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
@@ -263,7 +242,6 @@ struct ConvexCell {
     for (int t = 0; t < 8; ++t) {
       const uint32_t corners = box_triangle(t);
       radius2 = max_of(radius2, set_triangle(t, corner(corners, 0), corner(corners, 1), corner(corners, 2)).radius2);
-      adjacent[t] = box_adjacency(t);
     }
     tolerance = relative_tolerance;
     max_band_widenings = band_widenings;
@@ -303,10 +281,7 @@ struct ConvexCell {
     // one, and the volume error stays of the order of the band.
     Mask clipped;
     T kept_radius2;  // the largest |vertex|^2 of the vertices the plane keeps
-    // Boundary edge from -> to, at `from`: to | (its removed triangle's slot)
-    // << 8 | (the kept one's across it) << 18.
-    uint32_t next[MAX_PLANES];
-    Mask bordered;  // the removed triangles with a boundary edge
+    uint8_t next[MAX_PLANES];
     PlaneSet on_boundary;
     int boundary_length = 0;
     uint8_t start = kNone;
@@ -316,7 +291,7 @@ struct ConvexCell {
       if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
       if (num_planes == MAX_PLANES) compact_planes();
       if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
-      if (removed_boundary(clipped, next, bordered, on_boundary, boundary_length, start)) break;
+      if (removed_boundary(clipped, next, on_boundary, boundary_length, start)) break;
     }
     const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
@@ -335,81 +310,21 @@ struct ConvexCell {
     // blue-noise clip kernel's L1 sector traffic (ncu, H100). Timed alone,
     // at full residency, it changed nothing (benchmarks/NOTES.md); it stays
     // as the simpler loop.
-    // New triangle e = (from, to, p) borders the kept triangle K across
-    // from -> to, and fan triangles e + 1 (across to -> p) and e - 1 (across
-    // p -> from). It takes the slot of the removed triangle across from K
-    // when no earlier fan triangle took it, so that K's neighbours stay as
-    // they are; a removed triangle with two or three boundary edges gives
-    // its slot to the first, and the others take spare slots (removed
-    // triangles with no boundary edge, lowest first), then slots after the
-    // last; their K learns the new slot. (With every kept neighbour updated,
-    // the scattered local-memory accesses cost the GPU more than the
-    // quadratic search saved.) A spare slot never holds the removed slot of
-    // another boundary edge, so K's field to update is the one holding the
-    // removed slot. The slot after each new triangle is taken one step
-    // ahead, and triangle 0's neighbours are written last, when the last
-    // slot is known.
-    Mask spare;
-    TV_UNROLL
-    for (int w = 0; w < kMaskWords; ++w) spare.word[w] = clipped.word[w] & ~bordered.word[w];
-    typename Mask::Cursor spares = spare.cursor();
-    int spares_left = removed - bordered.count();
-    Mask taken;
-    taken.clear();
-    const auto take_slot = [&](uint32_t edge_link) -> int {
-      const int gone = int((edge_link >> 8) & kSlotMask);
-      if (!taken.test(gone)) {
-        taken.set(gone);
-        return gone;
-      }
-      if (spares_left > 0) {
-        --spares_left;
-        return spares.next();
-      }
-      return num_triangles++;
-    };
+    typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
     Plane<T> from_plane = plane[from];
-    uint32_t link = next[from];
-    const int first = take_slot(link);
-    int slot = first, second = first, previous = first;
-    uint32_t first_kept = 0u;
     T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
-      const uint8_t to = static_cast<uint8_t>(link);
-      const uint32_t gone = (link >> 8) & kSlotMask;
-      const uint32_t kept = link >> 18;
-      if (uint32_t(slot) != gone) {
-        uint32_t theirs = adjacent[kept];
-        TV_UNROLL
-        for (int f = 0; f < 3; ++f)
-          theirs = uint32_t(slot_across(theirs, f)) == gone ? with_slot(theirs, f, uint32_t(slot)) : theirs;
-        adjacent[kept] = theirs;
-      }
-      uint32_t following_link = 0u;
-      int following = first;
-      if (e + 1 < boundary_length) {
-        following_link = next[to];
-        following = take_slot(following_link);
-      }
+      const uint8_t to = next[from];
       const Plane<T> to_plane = plane[to];
+      const int slot = e < removed ? holes.next() : num_triangles++;
       const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane), from_plane, to_plane, p).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
-      if (e == 0) {
-        first_kept = kept;
-        second = following;
-      } else {
-        adjacent[slot] = pack_slots(kept, uint32_t(following), uint32_t(previous));
-      }
       largest = max_of(largest, v2);
-      previous = slot;
-      slot = following;
-      link = following_link;
       from = to;
       from_plane = to_plane;
     }
-    adjacent[first] = pack_slots(first_kept, uint32_t(second), uint32_t(previous));
-    if (boundary_length < removed) fill_holes(spares, removed - boundary_length, spare);
+    if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
     radius2 = largest;
     return true;
   }
@@ -460,70 +375,57 @@ struct ConvexCell {
   }
 
   // Fewer new triangles than removed ones: move kept triangles from the end
-  // into the `count` holes left (the slots of `vacant` from `holes` on, all
-  // above the slots taken), lowest hole first, and shorten the list; a moved
-  // triangle's neighbours learn its new slot.
-  TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& vacant) {
+  // into the `count` holes left, lowest hole first, and shorten the list.
+  TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& clipped) {
     int last = num_triangles - 1;  // the highest slot that may still hold a kept triangle
     for (; count > 0; --count) {
       const int hole = holes.next();
-      while (last > hole && vacant.test(last)) --last;  // drop holes at the end
+      while (last > hole && clipped.test(last)) --last;  // drop holes at the end
       if (last <= hole) {  // nothing kept above this hole: the list ends before it
         last = min_of(last, hole - 1);
         break;
       }
       triangle[hole] = triangle[last];
       vertex[hole] = vertex[last];
-      const uint32_t adjacency = adjacent[last];
-      adjacent[hole] = adjacency;
-      for (int e = 0; e < 3; ++e) {
-        const int neighbor = slot_across(adjacency, e);
-        uint32_t theirs = adjacent[neighbor];
-        TV_UNROLL
-        for (int f = 0; f < 3; ++f) theirs = slot_across(theirs, f) == last ? with_slot(theirs, f, uint32_t(hole)) : theirs;
-        adjacent[neighbor] = theirs;
-      }
       --last;
     }
     num_triangles = last + 1;
   }
 
   // Boundary of the removed region R (Alg. 4): the directed edges of R whose
-  // reverse is not in R, i.e. whose neighbour across is kept, as a successor
-  // map over plane ids (next[x] is valid where `on_boundary` has x; it also
-  // holds the slots of the removed triangle and of the kept one across),
-  // and the removed triangles with a boundary edge. False if the boundary is not one
-  // simple cycle (short_cycle_needs_no_walk, cycle_length). With the
-  // neighbours stored, the search is linear in the removed triangles; the
-  // search for reverse edges among them was quadratic, and on the GPU a warp
-  // ran it for its largest region: ~52% of the blue-noise clip kernel's
-  // instructions (ncu, H100).
-  TV_HD bool removed_boundary(const Mask& clipped, uint32_t* next, Mask& bordered, PlaneSet& on_boundary,
+  // reverse is not in R, as a successor map over plane ids (next[x] is valid
+  // where `on_boundary` has x). False if the boundary is not one simple
+  // cycle (short_cycle_needs_no_walk, cycle_length). The removed triangles
+  // are gathered first, so that the search for reverse edges is a short
+  // branch-free loop of the same length in every lane.
+  TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
-    bordered.clear();
+    uint32_t removed[MAX_TRIANGLES];
+    int count = 0;
+    for (int w = 0; w < kMaskWords; ++w) {
+      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
+        removed[count++] = triangle[32 * w + lowest_bit(bits)];
+    }
     on_boundary.clear();
     PlaneSet targets;  // the planes boundary edges go to
     targets.clear();
     length = 0;
     start = kNone;
-    for (int w = 0; w < kMaskWords; ++w) {
-      for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u) {
-        const int t = 32 * w + lowest_bit(bits);
-        const uint32_t corners = triangle[t];
-        const uint32_t adjacency = adjacent[t];
-        for (int e = 0; e < 3; ++e) {
-          const int across = slot_across(adjacency, e);
-          if (clipped.test(across)) continue;  // an interior edge
-          const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
-          // A plane twice on the boundary: not a simple cycle.
-          if (on_boundary.test(from) || targets.test(to)) return false;
-          on_boundary.set(from);
-          targets.set(to);
-          next[from] = uint32_t(to) | uint32_t(t) << 8 | uint32_t(across) << 18;
-          bordered.set(t);
-          start = from;
-          ++length;
-        }
+    for (int i = 0; i < count; ++i) {
+      const uint32_t corners = removed[i];
+      for (int e = 0; e < 3; ++e) {
+        const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+        const uint32_t reverse = uint32_t(to) | uint32_t(from) << 8;
+        bool interior = false;
+        for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
+        if (interior) continue;
+        // A plane twice on the boundary: not a simple cycle.
+        if (on_boundary.test(from) || targets.test(to)) return false;
+        on_boundary.set(from);
+        targets.set(to);
+        next[from] = to;
+        start = from;
+        ++length;
       }
     }
     if (length < 3) return false;
@@ -535,11 +437,11 @@ struct ConvexCell {
   }
 
   // Edges on the way from `start` back to itself; stops early at a dead end.
-  TV_HD static int cycle_length(const uint32_t* next, const PlaneSet& on_boundary, uint8_t start) {
+  TV_HD static int cycle_length(const uint8_t* next, const PlaneSet& on_boundary, uint8_t start) {
     int length = 0;
     uint8_t from = start;
     do {
-      from = static_cast<uint8_t>(next[from]);
+      from = next[from];
       ++length;
     } while (from != start && on_boundary.test(from) && length <= MAX_PLANES);
     return from == start ? length : -1;
