@@ -413,12 +413,21 @@ struct ConvexCell {
     start = kNone;
     for (int i = 0; i < count; ++i) {
       const uint32_t corners = removed[i];
+      // Bit e: edge e's reverse is in a removed triangle (the edge is
+      // interior). One pass over the removed triangles tests all three
+      // edges, one load each.
+      uint32_t reverse[3];
+      TV_UNROLL
+      for (int e = 0; e < 3; ++e) reverse[e] = uint32_t(corner(corners, (e + 1) % 3)) | uint32_t(corner(corners, e)) << 8;
+      uint32_t interior = 0u;
+      for (int j = 0; j < count; ++j) {
+        const uint32_t other = removed[j];
+        TV_UNROLL
+        for (int e = 0; e < 3; ++e) interior |= uint32_t(has_edge(other, reverse[e])) << e;
+      }
       for (int e = 0; e < 3; ++e) {
+        if ((interior >> e) & 1u) continue;
         const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
-        const uint32_t reverse = uint32_t(to) | uint32_t(from) << 8;
-        bool interior = false;
-        for (int j = 0; j < count; ++j) interior |= has_edge(removed[j], reverse);
-        if (interior) continue;
         // A plane twice on the boundary: not a simple cycle.
         if (on_boundary.test(from) || targets.test(to)) return false;
         on_boundary.set(from);
