@@ -84,11 +84,11 @@ TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance)
   return neighbor_dist2 > T(4) * slack * cell_radius2;
 }
 
-// Edge e of triangle `corners` (a, b, c) as from | to << 8: (a, b), (b, c),
-// (c, a) for e = 0, 1, 2. Bits above the corners are ignored.
-TV_HD uint32_t edge_code(uint32_t corners, int e) {
-  return e == 0 ? corners & 0xffffu
-                : (e == 1 ? (corners >> 8) & 0xffffu : ((corners >> 16) & 0xffu) | (corners & 0xffu) << 8);
+// Whether triangle `corners` (a, b, c) has the directed edge with code
+// from | to << 8: its edges (a, b), (b, c), (c, a).
+TV_HD bool has_edge(uint32_t corners, uint32_t code) {
+  return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
+         (((corners >> 16) | (corners & 0xffu) << 8) == code);
 }
 
 // Whether a removed region's boundary of `length` edges is one cycle without
@@ -397,15 +397,10 @@ struct ConvexCell {
   // where `on_boundary` has x). False if the boundary is not one simple
   // cycle (short_cycle_needs_no_walk, cycle_length). The removed triangles
   // are gathered first, so that the search for reverse edges is a short
-  // loop of the same length in every lane. Each pair of removed triangles is
-  // tested once: an edge whose reverse is in a later triangle marks that
-  // triangle's edge interior too, in its gathered word's top byte. (On the
-  // GPU a warp runs the search for its largest region; with every edge
-  // tested against every triangle it held ~52% of the blue-noise clip
-  // kernel's instructions, ncu, H100.)
+  // branch-free loop of the same length in every lane.
   TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
                               int& length, uint8_t& start) const {
-    uint32_t removed[MAX_TRIANGLES];  // corners; bit 24 + e: edge e found interior
+    uint32_t removed[MAX_TRIANGLES];
     int count = 0;
     for (int w = 0; w < kMaskWords; ++w) {
       for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
@@ -418,22 +413,17 @@ struct ConvexCell {
     start = kNone;
     for (int i = 0; i < count; ++i) {
       const uint32_t corners = removed[i];
-      uint32_t reverse[3];  // edge e reversed, as from | to << 8
+      // Bit e: edge e's reverse is in a removed triangle (the edge is
+      // interior). One pass over the removed triangles tests all three
+      // edges, one load each.
+      uint32_t reverse[3];
       TV_UNROLL
       for (int e = 0; e < 3; ++e) reverse[e] = uint32_t(corner(corners, (e + 1) % 3)) | uint32_t(corner(corners, e)) << 8;
-      uint32_t interior = corners >> 24;  // bit e: edge e's reverse is in a removed triangle
-      for (int j = i + 1; j < count; ++j) {
+      uint32_t interior = 0u;
+      for (int j = 0; j < count; ++j) {
         const uint32_t other = removed[j];
-        uint32_t theirs = 0u;  // bit f: the other's edge f is the reverse of one of ours
         TV_UNROLL
-        for (int f = 0; f < 3; ++f) {
-          const uint32_t code = edge_code(other, f);
-          const bool match = code == reverse[0] || code == reverse[1] || code == reverse[2];
-          theirs |= uint32_t(match) << f;
-          TV_UNROLL
-          for (int e = 0; e < 3; ++e) interior |= uint32_t(code == reverse[e]) << e;
-        }
-        if (theirs != 0u) removed[j] = other | theirs << 24;
+        for (int e = 0; e < 3; ++e) interior |= uint32_t(has_edge(other, reverse[e])) << e;
       }
       for (int e = 0; e < 3; ++e) {
         if ((interior >> e) & 1u) continue;
