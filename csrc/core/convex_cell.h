@@ -415,7 +415,8 @@ struct ConvexCell {
       const uint32_t corners = removed[i];
       // Bit e: edge e's reverse is in a removed triangle (the edge is
       // interior). One pass over the removed triangles tests all three
-      // edges, one load each.
+      // edges, one load each (a pass per edge: clip kernel 4.51 against 3.95
+      // ms, 1M blue noise, H100; benchmarks/NOTES.md).
       uint32_t reverse[3];
       TV_UNROLL
       for (int e = 0; e < 3; ++e) reverse[e] = uint32_t(corner(corners, (e + 1) % 3)) | uint32_t(corner(corners, e)) << 8;

@@ -98,13 +98,12 @@ struct CudaExec {
   // warp diverge. The pass's k tells them apart, as the pilot (or Lloyd's
   // adapted k) picks it from the neighbours the cells need: blue noise gets
   // 19-24, perturbed grids ~48, white noise ~64. Voronoi wall time at 1M,
-  // thread / warp, H100 (crossover.py --op k, 2fd1a58): blue k=24 10.2 /
-  // 12.2 ms, k=32 10.5 / 13.2; perturbed k=48 30.6 / 19.8; white k=64 47.9 /
-  // 26.7 (white and perturbed favour the warp at every k from 24 to 80, blue
+  // thread / warp, H100 (crossover.py --op k, 29b8f20, with the capped grid
+  // of for_each_cell): blue k=24 6.91 / 11.97 ms, k=32 7.40 / 12.52;
+  // perturbed k=48 23.56 / 19.04; white k=64 39.96 / 26.30 (white and
+  // perturbed favour the warp at every k from 24 to 80, by 1.16-1.58x, blue
   // the thread at every k). From k = 40: a caller's k up to 39 on blue noise
   // stays on threads, and the pilot's k of both irregular kinds is above.
-  // These timings predate the capped grid of for_each_cell (d33b948), which
-  // made thread cells 37-42% faster: the rule is to be measured again.
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
   static constexpr int64_t kCooperativeCellsFromK = 40;
   static bool cooperative_cells(int64_t cells, int64_t k) {
