@@ -122,7 +122,8 @@ def main():
                 failed = (status != torchvor.CellStatus.SUCCESS) & (status != torchvor.CellStatus.DUPLICATE)
                 volume_error = abs(float(cells.volume[~failed].double().sum()) - 1.0)
                 recovered = "—" if k is None else int((cells.neighbors > k).sum())
-                row = [label, common.npoints_label(count), k or "pilot", common.fmt_s(seconds), common.fmt_s(knn_seconds),
+                row = [label, common.npoints_label(count), k or "pilot", common.fmt_s(seconds),
+                       common.fmt_s(knn_seconds),
                        f"{count / seconds / 1e6:.2f}", recovered, int(failed.sum()),
                        f"{volume_error:.1e}", "/".join(map(str, common.neighbor_percentiles(cells.neighbors))),
                        common.fmt_mib(memory.peak), common.fmt_mib(memory.work)]
