@@ -7,6 +7,11 @@
 
 #if defined(__CUDACC__)
 #define TV_HD __host__ __device__ __forceinline__
+#elif defined(__GNUC__)
+// Inlined on the host too, as nvcc inlines on the device: GCC kept some of
+// the small member functions (the kNN's Rings) as calls, and the CPU kNN ran
+// 6% slower (100K white noise, k=64, 2 cores: 191 -> 179 ms with this).
+#define TV_HD inline __attribute__((always_inline))
 #else
 #define TV_HD inline
 #endif
