@@ -1,27 +1,40 @@
 #!/usr/bin/env bash
 # A/B on the GPU machine: builds OLD_TREE (another revision's sources, e.g.
 # `mkdir ab_old && git archive REV | tar -x -C ab_old`; git ignores ab_*/, so
-# name it in the device tool's carry) and this tree side by side under /tmp, then runs
+# name it in the device tool's carry), the trees in MID_TREES (space-separated,
+# optional: A/B/C...) and this tree side by side under /tmp, then runs
 # benchmarks/ab_time.py on each in turn, ROUNDS times. No pip install: each
 # build is imported through PYTHONPATH (the machine must not have torchvor
 # installed in editable mode, whose import hook would win).
-#   usage: bash benchmarks/ab_compare.sh OLD_TREE [ROUNDS] [NEW_LABEL]
+#   usage: [MID_TREES="ab_mid"] bash benchmarks/ab_compare.sh OLD_TREE [ROUNDS] [NEW_LABEL]
 set -eu -o pipefail
-OLD_TREE=$(cd "$1" && pwd)
 ROUNDS=${2:-2}
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 export CXX=/usr/bin/g++ CC=/usr/bin/gcc TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=8 TORCHVOR_FORCE_CUDA=1
-rm -rf /tmp/ab_old /tmp/ab_new && mkdir -p /tmp/ab_old /tmp/ab_new
-cp -r "$OLD_TREE"/. /tmp/ab_old/
+labels=(old)
+sources=("$(cd "$1" && pwd)")
+for mid in ${MID_TREES:-}; do
+  labels+=("$(basename "$mid")")
+  sources+=("$(cd "$mid" && pwd)")
+done
+for i in "${!labels[@]}"; do
+  rm -rf "/tmp/ab_${labels[$i]}" && mkdir -p "/tmp/ab_${labels[$i]}"
+  cp -r "${sources[$i]}"/. "/tmp/ab_${labels[$i]}/"
+done
+rm -rf /tmp/ab_new && mkdir -p /tmp/ab_new
 (cd "$REPO" && tar --exclude='./ab_*' --exclude=./.git --exclude='./build' -cf - .) | tar -xf - -C /tmp/ab_new
-for tree in old new; do
-  (cd /tmp/ab_$tree && python3 setup.py build_ext --inplace >/tmp/ab_$tree.log 2>&1) &
+labels+=(new)
+for tree in "${labels[@]}"; do
+  (cd "/tmp/ab_$tree" && python3 setup.py build_ext --inplace >"/tmp/ab_$tree.log" 2>&1) &
 done
 wait
-for tree in old new; do
-  ls /tmp/ab_$tree/torchvor/_C*.so >/dev/null 2>&1 || { tail -30 /tmp/ab_$tree.log; exit 1; }
+for tree in "${labels[@]}"; do
+  ls /tmp/ab_$tree/torchvor/_C*.so >/dev/null 2>&1 || { tail -30 "/tmp/ab_$tree.log"; exit 1; }
 done
 for round in $(seq "$ROUNDS"); do
-  PYTHONPATH=/tmp/ab_old python3 "$REPO/benchmarks/ab_time.py" "old, round $round"
-  PYTHONPATH=/tmp/ab_new python3 "$REPO/benchmarks/ab_time.py" "${3:-new}, round $round"
+  for tree in "${labels[@]}"; do
+    label=$tree
+    [ "$tree" = new ] && label=${3:-new}
+    PYTHONPATH=/tmp/ab_$tree python3 "$REPO/benchmarks/ab_time.py" "$label, round $round"
+  done
 done

@@ -2,7 +2,9 @@
 call on 1M blue noise (k=24) and one kNN call (1M jittered, k=35), the wall
 time of one Lloyd iteration on the blue noise (k=24 and k=19, the k lloyd
 adapts to there), and the median of the last 5 of 10 iterations as lloyd
-reports them (seconds per iteration, adaptive k)."""
+reports them (seconds per iteration, adaptive k). AB_10M=1 adds one voronoi
+call on 10M blue noise (k=24; made by lloyd on the machine, ~10 s, cached in
+/tmp)."""
 import os
 import statistics
 import sys
@@ -41,9 +43,9 @@ def kernels(fn):
         torch.cuda.synchronize()
     out = {}
     for e in prof.key_averages():
-        for name in ("ClipFunctor", "KnnFunctor"):
+        for name in ("ClipFunctor", "KnnFunctor", "ToRowsFunctor"):
             if name in e.key:
-                out[name] = out.get(name, 0.0) + e.device_time_total / 1e3
+                out[name] = round(out.get(name, 0.0) + e.device_time_total / 1e3, 3)
     return out
 
 
@@ -58,3 +60,13 @@ print(f"{label}: voronoi 1M blue k=24 {timed(vor):.2f} ms {kernels(vor)}; "
       f"knn 1M jittered k=35 {timed(knn):.2f} ms {kernels(knn)}; "
       f"lloyd iteration 1M blue k=24 {timed(step):.2f} ms, k=19 {timed(step19):.2f} ms; "
       f"lloyd history, late iterations {late:.2f} ms (k {history[-1].k})", flush=True)
+if os.environ.get("AB_10M") == "1":
+    cache10 = "/tmp/blue_10m.pt"
+    if not os.path.exists(cache10):
+        white = torchvor.samples.white_noise(10_000_000, device="cuda")
+        torch.save(torchvor.lloyd(white, box, iters=100, k=24).cpu(), cache10)
+    blue10 = torch.load(cache10).cuda()
+    vor10 = lambda: torchvor.voronoi(blue10, box, k=24, on_failure="flag")
+    print(f"{label}: voronoi 10M blue k=24 {timed(vor10, repeats=7):.2f} ms {kernels(vor10)}; "
+          f"lloyd iteration 10M blue k=19 {timed(lambda: torchvor.lloyd(blue10, box, iters=1, k=19), repeats=7):.2f} ms",
+          flush=True)
