@@ -142,13 +142,24 @@ struct PoisonFunctor {
   }
 };
 
-// Row p of the grid-ordered outputs goes to the caller's row; one kernel
-// for all five outputs (five index_copy_ calls were ten launches). Writing
-// the caller's rows from the clip kernel itself slowed it on the H100
-// (scattered stores: clip kernel 7.81 -> 8.45 ms at 1M blue).
+// position_of_row[row_of_position[p]] = p: the inverse of the grid order.
+struct InvertOrderFunctor {
+  const int32_t* row_of_position;
+  int32_t* position_of_row;
+
+  TV_HD void operator()(int64_t p) const { position_of_row[row_of_position[p]] = static_cast<int32_t>(p); }
+};
+
+// The caller's row `row` of the outputs from the grid-ordered ones: one
+// kernel for all five outputs (five index_copy_ calls were ten launches).
+// It gathers (scattered reads, rows written in order) rather than scatters:
+// the scatter's partial-sector writes cost 4.26 ms at 10M blue noise on the
+// H100 once the outputs outgrew the L2 cache (0.16 ms at 1M; profile_gpu.py).
+// Writing the caller's rows from the clip kernel itself slowed it (scattered
+// stores: clip kernel 7.81 -> 8.45 ms at 1M blue, H100).
 template <typename io_t>
 struct ToRowsFunctor {
-  const int32_t* row_of_position;
+  const int32_t* position_of_row;
   const io_t* volume_in;
   const io_t* centroid_in;
   const io_t* second_moment_in;
@@ -160,8 +171,8 @@ struct ToRowsFunctor {
   int8_t* status;
   int32_t* num_neighbors;
 
-  TV_HD void operator()(int64_t p) const {
-    const int64_t row = row_of_position[p];
+  TV_HD void operator()(int64_t row) const {
+    const int64_t p = position_of_row[row];
     volume[row] = volume_in[p];
     centroid[3 * row] = centroid_in[3 * p];
     centroid[3 * row + 1] = centroid_in[3 * p + 1];
@@ -175,6 +186,9 @@ struct ToRowsFunctor {
 template <typename Exec>
 VoronoiOutputs to_caller_rows(const VoronoiOutputs& in) {
   const auto like = [](const at::Tensor& t) { return Exec::empty(t.sizes(), t.options()); };
+  const int64_t n = in.volume.size(0);
+  const at::Tensor position_of_row = like(in.row_of_position);
+  Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(), position_of_row.data_ptr<int32_t>()});
   VoronoiOutputs out;
   out.volume = like(in.volume);
   out.centroid = like(in.centroid);
@@ -183,13 +197,13 @@ VoronoiOutputs to_caller_rows(const VoronoiOutputs& in) {
   out.num_neighbors = like(in.num_neighbors);
   AT_DISPATCH_FLOATING_TYPES(in.volume.scalar_type(), "torchvor::voronoi_to_rows", [&] {
     const ToRowsFunctor<scalar_t> functor{
-        in.row_of_position.data_ptr<int32_t>(), in.volume.data_ptr<scalar_t>(),
+        position_of_row.data_ptr<int32_t>(),    in.volume.data_ptr<scalar_t>(),
         in.centroid.data_ptr<scalar_t>(),       in.second_moment.data_ptr<scalar_t>(),
         in.status.data_ptr<int8_t>(),           in.num_neighbors.data_ptr<int32_t>(),
         out.volume.data_ptr<scalar_t>(),        out.centroid.data_ptr<scalar_t>(),
         out.second_moment.data_ptr<scalar_t>(), out.status.data_ptr<int8_t>(),
         out.num_neighbors.data_ptr<int32_t>()};
-    Exec::for_each(in.volume.size(0), functor);
+    Exec::for_each(n, functor);
   });
   return out;
 }
