@@ -87,14 +87,19 @@ import torch, torchvor
 p = torch.load('/tmp/jittered_1m.pt').cuda()
 torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.synchronize()
 " 2>&1 | grep -v '^==PROF==' | tee "$OUT/ncu.log" | grep -E "Duration|Throughput|Registers|Achieved Occupancy|Theoretical Occupancy|Stall|Warp Cycles|Local|L1/TEX Hit|L2 Hit|Eligible|Issued|Block Limit|Dynamic|Static|Executed Ipc" ;;
-    sanitize)
-      for tool in memcheck racecheck; do
-        compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
+    sanitize)  # SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
+               # e.g. "default TORCHVOR_CELLS=cooperative,TORCHVOR_CELL_LANES=8"
+      for setting in ${SANITIZE_SETTINGS:-default}; do
+        for tool in memcheck racecheck; do
+          echo "$tool: $setting" | tee -a "$OUT/sanitize.log"
+          env $( [ "$setting" = default ] || echo "${setting//,/ }" ) \
+            compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
 import torch, torchvor, torchvor.samples
 p = torchvor.samples.white_noise(100000, device='cuda')
 torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
 torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item())
 " 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
+        done
       done ;;
   esac
 done
