@@ -152,9 +152,11 @@ struct InvertOrderFunctor {
 
 // The caller's row `row` of the outputs from the grid-ordered ones: one
 // kernel for all five outputs (five index_copy_ calls were ten launches).
-// It gathers (scattered reads, rows written in order) rather than scatters:
-// the scatter's partial-sector writes cost 4.26 ms at 10M blue noise on the
-// H100 once the outputs outgrew the L2 cache (0.16 ms at 1M; profile_gpu.py).
+// It gathers (scattered reads, rows written in order) rather than scatters,
+// whose partial-sector writes were slow once the outputs outgrew the L2
+// cache: kernel time at 10M blue noise, H100, 4.26-4.36 ms scattering against
+// 1.79-1.84 gathering (the inverse's own scatter, of one int32 array, is
+// included in neither); 1M: 0.157 against 0.070 ms (ab_compare.sh).
 // Writing the caller's rows from the clip kernel itself slowed it (scattered
 // stores: clip kernel 7.81 -> 8.45 ms at 1M blue, H100).
 template <typename io_t>
