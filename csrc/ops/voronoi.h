@@ -155,8 +155,8 @@ struct InvertOrderFunctor {
 // It gathers (scattered reads, rows written in order) rather than scatters,
 // whose partial-sector writes were slow once the outputs outgrew the L2
 // cache: kernel time at 10M blue noise, H100, 4.26-4.36 ms scattering against
-// 1.79-1.84 gathering (the inverse's own scatter, of one int32 array, is
-// included in neither); 1M: 0.157 against 0.070 ms (ab_compare.sh).
+// 1.79-1.84 gathering, plus 0.29 for InvertOrderFunctor, which scatters a
+// single int32 array; 1M: 0.157 against 0.070 ms (ab_compare.sh).
 // Writing the caller's rows from the clip kernel itself slowed it (scattered
 // stores: clip kernel 7.81 -> 8.45 ms at 1M blue, H100).
 template <typename io_t>
@@ -190,7 +190,8 @@ VoronoiOutputs to_caller_rows(const VoronoiOutputs& in) {
   const auto like = [](const at::Tensor& t) { return Exec::empty(t.sizes(), t.options()); };
   const int64_t n = in.volume.size(0);
   const at::Tensor position_of_row = like(in.row_of_position);
-  Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(), position_of_row.data_ptr<int32_t>()});
+  Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(),
+                                       position_of_row.data_ptr<int32_t>()});
   VoronoiOutputs out;
   out.volume = like(in.volume);
   out.centroid = like(in.centroid);
