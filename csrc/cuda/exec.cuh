@@ -167,18 +167,28 @@ struct CudaExec {
   static void for_each_cell(int64_t n, const Functor& functor) {
     if (n == 0) return;
     const auto kernel = for_each_strided_kernel<Functor>;
-    int device = 0, sms = 0, most = 0;
-    C10_CUDA_CHECK(cudaGetDevice(&device));
-    C10_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
-    C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&most, kernel, kThreads, 0));
-    static const int64_t frame_bytes = [&] {
+    // The kernel's frame and the blocks an SM holds depend only on the kernel
+    // and the GPU architecture (a process is taken to see one), so they are
+    // asked once, not at every pass; the SM count is the device's (a MIG
+    // slice has fewer), asked at each launch.
+    struct Residency {
+      int64_t frame_bytes;  // the stack frame of one thread
+      int64_t most;         // blocks of kThreads an SM can hold
+    };
+    static const Residency residency = [&] {
       cudaFuncAttributes attributes;
       C10_CUDA_CHECK(cudaFuncGetAttributes(&attributes, kernel));
-      return std::max<int64_t>(1, static_cast<int64_t>(attributes.localSizeBytes));
+      int most = 0;
+      C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&most, kernel, kThreads, 0));
+      return Residency{std::max<int64_t>(1, static_cast<int64_t>(attributes.localSizeBytes)),
+                       std::max<int64_t>(1, most)};
     }();
-    int64_t per_sm = kCellFramesPerSm / (kThreads * frame_bytes);
+    int device = 0, sms = 0;
+    C10_CUDA_CHECK(cudaGetDevice(&device));
+    C10_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+    int64_t per_sm = kCellFramesPerSm / (kThreads * residency.frame_bytes);
     if (const char* chosen = std::getenv("TORCHVOR_CELL_BLOCKS_PER_SM")) per_sm = std::atoi(chosen);
-    per_sm = std::max<int64_t>(1, std::min<int64_t>(per_sm, std::max(most, 1)));
+    per_sm = std::max<int64_t>(1, std::min<int64_t>(per_sm, residency.most));
     const int64_t blocks = std::min<int64_t>((n + kThreads - 1) / kThreads, sms * per_sm);
     kernel<<<blocks, kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(n, functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
