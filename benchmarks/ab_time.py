@@ -4,7 +4,9 @@ time of one Lloyd iteration on the blue noise (k=24 and k=19, the k lloyd
 adapts to there), and the median of the last 5 of 10 iterations as lloyd
 reports them (seconds per iteration, adaptive k). AB_10M=1 adds one voronoi
 call on 10M blue noise (k=24; made by lloyd on the machine, ~6 s, cached in
-/tmp) and one Lloyd iteration on it (k=19)."""
+/tmp) and one Lloyd iteration on it (k=19). AB_IRREGULAR=1 adds voronoi calls
+on white noise and perturbed grids of 1M and 10M points (k from the pilot: warp
+cells)."""
 import os
 import statistics
 import sys
@@ -70,3 +72,11 @@ if os.environ.get("AB_10M") == "1":
     print(f"{label}: voronoi 10M blue k=24 {timed(vor10, repeats=7):.2f} ms {kernels(vor10)}; "
           f"lloyd iteration 10M blue k=19 {timed(lambda: torchvor.lloyd(blue10, box, iters=1, k=19), repeats=7):.2f} ms",
           flush=True)
+if os.environ.get("AB_IRREGULAR") == "1":
+    # Warp cells: 1M and 10M white noise and perturbed grids, k from the pilot.
+    for n, tag in ((1_000_000, "1M"), (10_000_000, "10M")):
+        for kind, make in (("white", torchvor.samples.white_noise), ("perturbed", torchvor.samples.perturbed_grid)):
+            points = make(n, seed=0, device="cuda")
+            call = lambda: torchvor.voronoi(points, box, on_failure="flag")  # noqa: E731
+            print(f"{label}: voronoi {tag} {kind} {timed(call, repeats=5 if n > 1_000_000 else 20):.2f} ms "
+                  f"{kernels(call)}", flush=True)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|crossk|bluek|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|crossk|bluek|density|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -37,6 +37,9 @@ for step in "${@:-smoke}"; do
     bluek)  # blue noise against first-pass k (0 = the op's pilot)
       python3 benchmarks/bench_voronoi.py --device cuda --kinds blue --sizes ${BLUEK_SIZES:-1M,10M} \
         --k ${BLUEK_K:-0,16,18,20,24} 2>&1 | grep -v USDT | tee "$OUT/bluek.log" ;;
+    density)  # kNN and voronoi against the grid's points per cell (TORCHVOR_POINTS_PER_CELL_SCALE)
+      python3 benchmarks/sweep_points_per_cell.py --device cuda --sizes ${DENSITY_SIZES:-1M,10M} 2>&1 \
+        | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/density.log" ;;
     residency)  # clip kernel against resident blocks per SM of one-thread-per-cell clipping
       python3 benchmarks/sweep_cell_residency.py --device cuda --sizes ${RESIDENCY_SIZES:-1M,10M} 2>&1 \
         | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/residency.log" ;;

@@ -961,6 +961,25 @@ def test_compile_voronoi(device, dtype, gen):
 # -------------------------------------------------------- CPU / CUDA parity
 
 
+@pytest.mark.parametrize("scale", ["0.3", "3"])
+def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
+    """TORCHVOR_POINTS_PER_CELL_SCALE (benchmarks/sweep_points_per_cell.py)
+    scales the points per grid cell of the kNN searches: another grid finds
+    the same neighbours (ties go to the lower index), so the kNN and the cells
+    are equal to the default's, bit for bit."""
+    points = rand(5000, gen, dtype, device)
+    default_cells = torchvor.voronoi(points, UNIT, k=24)
+    default_knn = torchvor.knn(points, 16)
+    monkeypatch.setenv("TORCHVOR_POINTS_PER_CELL_SCALE", scale)
+    cells = torchvor.voronoi(points, UNIT, k=24)
+    knn = torchvor.knn(points, 16)
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
+    assert torch.equal(default_knn.idx, knn.idx)
+    assert torch.equal(default_knn.dist2, knn.dist2)
+
+
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("blocks_per_sm", ["1", "1000"])
 def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_per_sm):

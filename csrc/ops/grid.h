@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <vector>
 
 #include "../core/grid_search.h"
@@ -225,8 +226,12 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
 // points) let the distance pruning of the ring search scan little more than
 // the k-ball itself. Measured (benchmarks/NOTES.md): CPU 3.45 us/query at k=35
 // against 5.0 with k / 4; H200 1M k=35 5.3 ms against 7.8 with k / 4.
+// TORCHVOR_POINTS_PER_CELL_SCALE multiplies it (benchmarks/sweep_points_per_cell.py).
 inline double points_per_cell_for(int64_t k) {
-  return std::min(32.0, std::max(2.0, double(k) / 16.0));
+  double scale = 1.0;
+  if (const char* chosen = std::getenv("TORCHVOR_POINTS_PER_CELL_SCALE")) scale = std::atof(chosen);
+  if (!(scale > 0.0)) scale = 1.0;
+  return scale * std::min(32.0, std::max(2.0, double(k) / 16.0));
 }
 
 }  // namespace ops
