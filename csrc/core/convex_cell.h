@@ -118,14 +118,27 @@ struct CellMoments {
   TV_HD static CellMoments zero() { return {T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
 
   // The six tetrahedra of vertex v, where planes a, b, c (in the triangle's
-  // orientation) meet.
-  TV_HD void add_vertex(const Plane<T> (&planes)[3], Vec3<T> v) {
-    const Vec3<T> feet[3] = {plane_foot(planes[0]), plane_foot(planes[1]), plane_foot(planes[2])};
+  // orientation) meet. Each foot is used by two tetrahedra: its |x|^2, and
+  // the edge foot's cross product with v (det3(f, e, v) = f . (e x v)), are
+  // computed once for both.
+  TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex) {
+    const Vec3<T> v = vertex.position;
+    Vec3<T> feet[3];
+    T feet2[3];
+    TV_UNROLL
+    for (int e = 0; e < 3; ++e) {
+      feet[e] = plane_foot(planes[e]);
+      feet2[e] = dot(feet[e], feet[e]);
+    }
+    TV_UNROLL
     for (int e = 0; e < 3; ++e) {
       const int f = (e + 1) % 3;
-      const Vec3<T> edge_foot = line_foot(planes[e], planes[f]);
-      add_tetrahedron(feet[e], edge_foot, v, T(1));
-      add_tetrahedron(feet[f], edge_foot, v, T(-1));
+      const Vec3<T> edge_foot = line_foot(planes[e], planes[f], v);
+      const Vec3<T> edge_cross_v = cross(edge_foot, v);
+      const Vec3<T> edge_plus_v = edge_foot + v;
+      const T edge_v2 = dot(edge_foot, edge_foot) + vertex.radius2;
+      add_tetrahedron(feet[e], feet2[e], edge_cross_v, edge_plus_v, edge_v2, T(1));
+      add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
     }
   }
 
@@ -136,27 +149,38 @@ struct CellMoments {
     second_moment = m2 / T(120);
   }
 
-  // Orthogonal projection of the seed (origin) onto a plane.
+  // Orthogonal projection of the seed (origin) onto a plane, for the two
+  // kinds of plane a cell has, without a division: a bisector
+  // (bisector_plane: offset |normal|^2 / 2, so the foot is -normal / 2) or a
+  // box face (box_plane: a unit normal, so the foot is -offset * normal).
+  // A bisector with |normal| = 1 has offset 1/2: either formula holds. (A
+  // branch to the division for planes of neither kind made the warp cell's
+  // clip kernel 7% slower, H100: benchmarks/NOTES.md.)
   TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
-    return (-p.offset / dot(p.normal, p.normal)) * p.normal;
+    const bool unit_normal = dot(p.normal, p.normal) == T(1);
+    return (unit_normal ? -p.offset : T(-0.5)) * p.normal;
   }
 
-  // Orthogonal projection of the seed onto the line where planes a, b meet.
-  TV_HD static Vec3<T> line_foot(const Plane<T>& pa, const Plane<T>& pb) {
+  // Orthogonal projection of the seed onto the line where planes a, b meet,
+  // from a point v on it (the vertex): v minus its component along the line.
+  // The edge's two vertices compute it apart, equal up to rounding: the
+  // tetrahedra then cancel up to rounding, as they do anyway.
+  TV_HD static Vec3<T> line_foot(const Plane<T>& pa, const Plane<T>& pb, Vec3<T> v) {
     const Vec3<T> direction = cross(pa.normal, pb.normal);
-    const T scale = T(-1) / dot(direction, direction);
-    return scale * (pa.offset * cross(pb.normal, direction) + pb.offset * cross(direction, pa.normal));
+    return v - (dot(v, direction) / dot(direction, direction)) * direction;
   }
 
-  // Signed tetrahedron (seed, f, e, v). Integral of |x|^2 over a tetrahedron
-  // with a vertex at the origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2).
-  TV_HD void add_tetrahedron(Vec3<T> f, Vec3<T> e, Vec3<T> v, T sign) {
-    const T six_vol = sign * det3(f, e, v);
-    const Vec3<T> sum = f + e + v;
+  // Signed tetrahedron (seed, f, e, v), given |f|^2, e x v, e + v and
+  // |e|^2 + |v|^2. Integral of |x|^2 over a tetrahedron with a vertex at the
+  // origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2).
+  TV_HD void add_tetrahedron(Vec3<T> f, T f2, Vec3<T> edge_cross_v, Vec3<T> edge_plus_v, T edge_v2,
+                             T sign) {
+    const T six_vol = sign * dot(f, edge_cross_v);
+    const Vec3<T> sum = f + edge_plus_v;
     six_volume += six_vol;
     unsigned_six_volume += six_vol < T(0) ? -six_vol : six_vol;
     m1 = m1 + six_vol * sum;
-    m2 += six_vol * (dot(f, f) + dot(e, e) + dot(v, v) + dot(sum, sum));
+    m2 += six_vol * (f2 + edge_v2 + dot(sum, sum));
   }
 };
 
@@ -338,7 +362,7 @@ struct ConvexCell {
       const uint32_t corners = triangle[t];
       const Plane<T> planes[3] = {plane[corner(corners, 0)], plane[corner(corners, 1)],
                                   plane[corner(corners, 2)]};
-      moments.add_vertex(planes, vertex[t].position);
+      moments.add_vertex(planes, vertex[t]);
     }
     moments.finish(volume, first_moment, second_moment, unsigned_volume);
   }

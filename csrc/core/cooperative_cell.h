@@ -155,7 +155,7 @@ struct CooperativeCell {
       const uint32_t corners = a.triangle[t];
       const Plane<T> planes[3] = {a.plane[corner(corners, 0)], a.plane[corner(corners, 1)],
                                   a.plane[corner(corners, 2)]};
-      moments.add_vertex(planes, a.vertex[t].position);
+      moments.add_vertex(planes, a.vertex[t]);
     });
     moments.six_volume = lanes.sum(moments.six_volume);
     moments.unsigned_six_volume = lanes.sum(moments.unsigned_six_volume);
