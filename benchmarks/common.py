@@ -411,3 +411,21 @@ def print_results(title: str, headers: list[str], rows: list[list], notes: list[
         for note in dict.fromkeys(notes):  # in order, without repeats
             print(f"- {note}")
     print(flush=True)
+
+
+def sweep_environment(variable: str, settings: list, cases: list[tuple[str, Callable[[], object]]],
+                      measure: Callable[[Callable[[], object]], list]) -> list[list]:
+    """Rows [case, setting, *measure(call)] for each (case, call) of `cases` under each
+    setting of the environment variable `variable` (None: unset, shown as "default"),
+    printed as they come. The variable is unset afterwards."""
+    rows = []
+    for name, call in cases:
+        for setting in settings:
+            if setting is None:
+                os.environ.pop(variable, None)
+            else:
+                os.environ[variable] = str(setting)
+            rows.append([name, "default" if setting is None else setting, *measure(call)])
+            print(" | ".join(str(x) for x in rows[-1]), flush=True)
+        os.environ.pop(variable, None)
+    return rows

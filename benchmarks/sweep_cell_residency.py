@@ -11,7 +11,6 @@ kernels' GPU time per call (profiler, mean of 5) and the wall time of the
 voronoi call (CUDA events, median of 5); "default" is the cap the backend
 chooses.
 """
-import os
 import sys
 from pathlib import Path
 
@@ -42,19 +41,14 @@ def main():
             cases.append((f"blue {common.npoints_label(n)} float64", blue.double(), 24))
             jittered = torchvor.samples.jittered_grid(n, device=device)
             cases.append((f"jittered {common.npoints_label(n)} float32", jittered, 32))
-    rows = []
-    for name, points, k in cases:
-        call = lambda: torchvor.voronoi(points, common.UNIT_BOX, k=k, on_failure="flag")  # noqa: E731
-        for setting in settings:
-            if setting is None:
-                os.environ.pop(VARIABLE, None)
-            else:
-                os.environ[VARIABLE] = str(setting)
-            clip = kernel_ms(call, "ClipFunctor")
-            wall = common.time_fn(call, device, warmup=1, repeats=5)
-            rows.append([name, "default" if setting is None else setting, f"{clip:.2f} ms", common.fmt_s(wall)])
-            print(" | ".join(str(x) for x in rows[-1]), flush=True)
-        os.environ.pop(VARIABLE, None)
+
+    def measure(call):
+        clip = kernel_ms(call, "ClipFunctor")
+        return [f"{clip:.2f} ms", common.fmt_s(common.time_fn(call, device, warmup=1, repeats=5))]
+
+    calls = [(name, lambda p=points, k=k: torchvor.voronoi(p, common.UNIT_BOX, k=k, on_failure="flag"))
+             for name, points, k in cases]
+    rows = common.sweep_environment(VARIABLE, settings, calls, measure)
     common.print_results("Clip kernel against resident blocks of 128 threads per SM",
                          ["case", "blocks / SM", "clip kernels", "voronoi"], rows)
 

@@ -9,7 +9,6 @@ grid and white noise (k from the pilot), and the public kNN on a jittered grid
 (k=35). Each row: the kNN kernels' GPU time per call (profiler, mean of 3; CPU:
 none) and the wall time of the call (median of 3).
 """
-import os
 import sys
 from pathlib import Path
 
@@ -50,15 +49,12 @@ def main():
             (f"voronoi white {label}", lambda p=white: torchvor.voronoi(p, common.UNIT_BOX, on_failure="flag")),
             (f"knn jittered {label} k=35", lambda p=jittered: torchvor.knn(p, 35)),
         ]
-    rows = []
-    for name, call in cases:
-        for scale in scales:
-            os.environ[VARIABLE] = str(scale)
-            kernel = knn_kernel_ms(call, device)
-            wall = common.time_fn(call, device, warmup=1, repeats=3)
-            rows.append([name, scale, "-" if kernel is None else f"{kernel:.2f} ms", common.fmt_s(wall)])
-            print(" | ".join(str(x) for x in rows[-1]), flush=True)
-        os.environ.pop(VARIABLE, None)
+    def measure(call):
+        kernel = knn_kernel_ms(call, device)
+        wall = common.time_fn(call, device, warmup=1, repeats=3)
+        return ["-" if kernel is None else f"{kernel:.2f} ms", common.fmt_s(wall)]
+
+    rows = common.sweep_environment(VARIABLE, scales, cases, measure)
     common.print_results("kNN and voronoi against the grid's points per cell (scale of k / 16, at least 2)",
                          ["case", "scale", "kNN kernels", "call"], rows)
 
