@@ -958,9 +958,6 @@ def test_compile_voronoi(device, dtype, gen):
             torch.testing.assert_close(a, b)
 
 
-# -------------------------------------------------------- CPU / CUDA parity
-
-
 @pytest.mark.parametrize("scale", ["0.3", "3"])
 def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
     """TORCHVOR_POINTS_PER_CELL_SCALE (benchmarks/sweep_points_per_cell.py)
@@ -978,6 +975,9 @@ def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
         assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
     assert torch.equal(default_knn.idx, knn.idx)
     assert torch.equal(default_knn.dist2, knn.dist2)
+
+
+# -------------------------------------------------------- CPU / CUDA parity
 
 
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")

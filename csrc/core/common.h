@@ -43,8 +43,6 @@ template <typename T>
 TV_HD Vec3<T> cross(Vec3<T> a, Vec3<T> b) {
   return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
-template <typename T>
-TV_HD T det3(Vec3<T> a, Vec3<T> b, Vec3<T> c) { return dot(a, cross(b, c)); }
 
 template <typename T>
 TV_HD Vec3<T> load_vec3(const T* p) { return {p[0], p[1], p[2]}; }

@@ -119,8 +119,8 @@ struct CellMoments {
 
   // The six tetrahedra of vertex v, where planes a, b, c (in the triangle's
   // orientation) meet. Each foot is used by two tetrahedra: its |x|^2, and
-  // the edge foot's cross product with v (det3(f, e, v) = f . (e x v)), are
-  // computed once for both.
+  // the edge foot's cross product with v (the determinant of f, e, v is
+  // f . (e x v)), are computed once for both.
   TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex) {
     const Vec3<T> v = vertex.position;
     Vec3<T> feet[3];
