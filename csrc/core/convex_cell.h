@@ -32,6 +32,18 @@ struct alignas(16) CachedVertex {
   T radius2;
 };
 
+// A dual triangle of the thread cell: its three plane ids and its vertex,
+// one 16-byte record in float32 (one vector store; the corners and the
+// position are read together by the integrals). |vertex|^2 is recomputed
+// where needed rather than stored: the thread cell's speed is bound by how
+// much cell state its threads keep in the L1 cache (benchmarks/NOTES.md),
+// and arithmetic is cheap beside a local-memory word.
+template <typename T>
+struct alignas(16) DualTriangle {
+  Vec3<T> position;
+  uint32_t corners;  // plane ids (a, b, c) packed as a | b << 8 | c << 16
+};
+
 // The box [lo, hi] (relative to the seed): plane q of 6, and the corners
 // (plane ids packed as a | b << 8 | c << 16) of its dual triangle t of 8.
 // (No local arrays: indexed by a lane number they would go to local memory.)
@@ -243,8 +255,7 @@ struct ConvexCell {
   using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
 
   Plane<T> plane[MAX_PLANES];
-  uint32_t triangle[MAX_TRIANGLES];  // plane ids (a, b, c) packed as a | b << 8 | c << 16
-  CachedVertex<T> vertex[MAX_TRIANGLES];  // vertex of triangle t
+  DualTriangle<T> triangle[MAX_TRIANGLES];
   int32_t num_planes;
   int32_t num_triangles;
   T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
@@ -279,11 +290,9 @@ struct ConvexCell {
   // The same with the planes of a, b, c already at hand.
   TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c, const Plane<T>& pa,
                                      const Plane<T>& pb, const Plane<T>& pc) {
-    triangle[t] = pack(a, b, c);
     const Vec3<T> position = intersect_planes(pa, pb, pc);
-    const CachedVertex<T> v = {position, dot(position, position)};
-    vertex[t] = v;
-    return v;
+    triangle[t] = {position, pack(a, b, c)};
+    return {position, dot(position, position)};
   }
 
   // Whether no neighbour this far (or farther) can cut the cell.
@@ -359,10 +368,10 @@ struct ConvexCell {
                        T& unsigned_volume) const {
     CellMoments<T> moments = CellMoments<T>::zero();
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle[t];
-      const Plane<T> planes[3] = {plane[corner(corners, 0)], plane[corner(corners, 1)],
-                                  plane[corner(corners, 2)]};
-      moments.add_vertex(planes, vertex[t]);
+      const DualTriangle<T> dual = triangle[t];
+      const Plane<T> planes[3] = {plane[corner(dual.corners, 0)], plane[corner(dual.corners, 1)],
+                                  plane[corner(dual.corners, 2)]};
+      moments.add_vertex(planes, {dual.position, dot(dual.position, dual.position)});
     }
     moments.finish(volume, first_moment, second_moment, unsigned_volume);
   }
@@ -387,10 +396,10 @@ struct ConvexCell {
       uint32_t bits = 0u;
       const int end = min_of(num_triangles - 32 * w, 32);
       for (int i = 0; i < end; ++i) {
-        const CachedVertex<T> v = vertex[32 * w + i];
-        const bool outside = dot(p.normal, v.position) + p.offset < threshold;
+        const Vec3<T> v = triangle[32 * w + i].position;
+        const bool outside = dot(p.normal, v) + p.offset < threshold;
         bits |= uint32_t(outside) << i;
-        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
+        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, dot(v, v));
       }
       clipped.word[w] = bits;
       any_clipped |= bits;
@@ -410,7 +419,6 @@ struct ConvexCell {
         break;
       }
       triangle[hole] = triangle[last];
-      vertex[hole] = vertex[last];
       --last;
     }
     num_triangles = last + 1;
@@ -428,7 +436,7 @@ struct ConvexCell {
     int count = 0;
     for (int w = 0; w < kMaskWords; ++w) {
       for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
-        removed[count++] = triangle[32 * w + lowest_bit(bits)];
+        removed[count++] = triangle[32 * w + lowest_bit(bits)].corners;
     }
     on_boundary.clear();
     PlaneSet targets;  // the planes boundary edges go to
@@ -487,7 +495,7 @@ struct ConvexCell {
     uint8_t renumber[MAX_PLANES];
     for (int q = 0; q < num_planes; ++q) renumber[q] = kNone;
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle[t];
+      const uint32_t corners = triangle[t].corners;
       for (int e = 0; e < 3; ++e) renumber[corner(corners, e)] = 0;
     }
     int live = 0;
@@ -497,8 +505,8 @@ struct ConvexCell {
       renumber[q] = static_cast<uint8_t>(live++);
     }
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle[t];
-      triangle[t] = pack(renumber[corner(corners, 0)], renumber[corner(corners, 1)],
+      const uint32_t corners = triangle[t].corners;
+      triangle[t].corners = pack(renumber[corner(corners, 0)], renumber[corner(corners, 1)],
                          renumber[corner(corners, 2)]);
     }
     num_planes = live;
