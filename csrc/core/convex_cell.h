@@ -254,7 +254,13 @@ struct ConvexCell {
   using Mask = BitSet<kMaskWords>;
   using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
 
-  Plane<T> plane[MAX_PLANES];
+  // Planes 0-5 are the box's faces; plane q >= 6 is the bisector of the
+  // seed and the neighbour at neighbor[q] (relative to the seed), kept as
+  // that point: 12 bytes a plane, not 16 (as DualTriangle, for the cache).
+  // Compaction keeps the faces' ids.
+  static constexpr int kBoxPlanes = 6;
+  Plane<T> box_face[kBoxPlanes];
+  Vec3<T> neighbor[MAX_PLANES];  // slots 0-5 unused
   DualTriangle<T> triangle[MAX_TRIANGLES];
   int32_t num_planes;
   int32_t num_triangles;
@@ -265,13 +271,19 @@ struct ConvexCell {
 
   TV_HD Lanes group() const { return {}; }
 
+  TV_HD Plane<T> plane(int q) const {
+    if (q < kBoxPlanes) return box_face[q];
+    const Vec3<T> r = neighbor[q];
+    return bisector_plane(r, dot(r, r));
+  }
+
   TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
   TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
-    for (int q = 0; q < 6; ++q) plane[q] = box_plane(q, lo, hi);
-    num_planes = 6;
+    for (int q = 0; q < kBoxPlanes; ++q) box_face[q] = box_plane(q, lo, hi);
+    num_planes = kBoxPlanes;
     num_triangles = 8;
     radius2 = T(0);
     for (int t = 0; t < 8; ++t) {
@@ -285,7 +297,7 @@ struct ConvexCell {
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
   TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
-    return set_triangle(t, a, b, c, plane[a], plane[b], plane[c]);
+    return set_triangle(t, a, b, c, plane(a), plane(b), plane(c));
   }
   // The same with the planes of a, b, c already at hand.
   TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c, const Plane<T>& pa,
@@ -329,7 +341,7 @@ struct ConvexCell {
     const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int new_plane = num_planes++;
-    plane[new_plane] = p;
+    neighbor[new_plane] = r;
     // Close the hole with a fan of triangles (s, t, p) along the boundary
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
@@ -338,18 +350,18 @@ struct ConvexCell {
     // boundary plane is loaded once (it is `to` of one new vertex and `from`
     // of the next), and the new plane comes from registers. On the GPU a
     // plane load is a scattered local access (local memory interleaves the
-    // threads' 4-byte words, so one thread's 16-byte plane spans up to four
+    // threads' 4-byte words, so one thread's plane spans up to three
     // sectors): the fan's three plane loads a vertex were ~30% of the
     // blue-noise clip kernel's L1 sector traffic (ncu, H100). Timed alone,
     // at full residency, it changed nothing (benchmarks/NOTES.md); it stays
     // as the simpler loop.
     typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
-    Plane<T> from_plane = plane[from];
+    Plane<T> from_plane = plane(from);
     T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
       const uint8_t to = next[from];
-      const Plane<T> to_plane = plane[to];
+      const Plane<T> to_plane = plane(to);
       const int slot = e < removed ? holes.next() : num_triangles++;
       const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane), from_plane, to_plane, p).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
@@ -369,8 +381,8 @@ struct ConvexCell {
     CellMoments<T> moments = CellMoments<T>::zero();
     for (int t = 0; t < num_triangles; ++t) {
       const DualTriangle<T> dual = triangle[t];
-      const Plane<T> planes[3] = {plane[corner(dual.corners, 0)], plane[corner(dual.corners, 1)],
-                                  plane[corner(dual.corners, 2)]};
+      const Plane<T> planes[3] = {plane(corner(dual.corners, 0)), plane(corner(dual.corners, 1)),
+                                  plane(corner(dual.corners, 2))};
       moments.add_vertex(planes, {dual.position, dot(dual.position, dual.position)});
     }
     moments.finish(volume, first_moment, second_moment, unsigned_volume);
@@ -498,10 +510,11 @@ struct ConvexCell {
       const uint32_t corners = triangle[t].corners;
       for (int e = 0; e < 3; ++e) renumber[corner(corners, e)] = 0;
     }
-    int live = 0;
-    for (int q = 0; q < num_planes; ++q) {
+    for (int q = 0; q < kBoxPlanes; ++q) renumber[q] = static_cast<uint8_t>(q);
+    int live = kBoxPlanes;
+    for (int q = kBoxPlanes; q < num_planes; ++q) {
       if (renumber[q] == kNone) continue;
-      plane[live] = plane[q];
+      neighbor[live] = neighbor[q];
       renumber[q] = static_cast<uint8_t>(live++);
     }
     for (int t = 0; t < num_triangles; ++t) {
