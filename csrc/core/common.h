@@ -64,6 +64,18 @@ TV_HD double mul_rn(double a, double b) {
   return a * b;
 #endif
 }
+template <typename T>  // other scalars (double-double): their own product
+TV_HD T mul_rn(T a, T b) {
+  return a * b;
+}
+// |v|^2 rounded the same wherever it is computed: the thread cell recomputes
+// a vertex's in several places and the warp cell caches it, and nvcc fuses
+// each site's multiply-adds its own way; an ulp there moved the radius of
+// security by one neighbour between the two cells (CUDA test).
+template <typename T>
+TV_HD T squared_norm(Vec3<T> v) {
+  return (mul_rn(v.x, v.x) + mul_rn(v.y, v.y)) + mul_rn(v.z, v.z);
+}
 template <typename T>
 TV_HD T squared_distance(Vec3<T> a, Vec3<T> b) {
   const T dx = a.x - b.x, dy = a.y - b.y, dz = a.z - b.z;

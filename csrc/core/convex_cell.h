@@ -304,7 +304,7 @@ struct ConvexCell {
                                      const Plane<T>& pb, const Plane<T>& pc) {
     const Vec3<T> position = intersect_planes(pa, pb, pc);
     triangle[t] = {position, pack(a, b, c)};
-    return {position, dot(position, position)};
+    return {position, squared_norm(position)};
   }
 
   // Whether no neighbour this far (or farther) can cut the cell.
@@ -383,7 +383,7 @@ struct ConvexCell {
       const DualTriangle<T> dual = triangle[t];
       const Plane<T> planes[3] = {plane(corner(dual.corners, 0)), plane(corner(dual.corners, 1)),
                                   plane(corner(dual.corners, 2))};
-      moments.add_vertex(planes, {dual.position, dot(dual.position, dual.position)});
+      moments.add_vertex(planes, {dual.position, squared_norm(dual.position)});
     }
     moments.finish(volume, first_moment, second_moment, unsigned_volume);
   }
@@ -411,7 +411,7 @@ struct ConvexCell {
         const Vec3<T> v = triangle[32 * w + i].position;
         const bool outside = dot(p.normal, v) + p.offset < threshold;
         bits |= uint32_t(outside) << i;
-        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, dot(v, v));
+        kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, squared_norm(v));
       }
       clipped.word[w] = bits;
       any_clipped |= bits;

@@ -188,7 +188,7 @@ struct CooperativeCell {
   TV_HD CachedVertex<T> set_triangle(int t, uint32_t corners, const Plane<T>& third) {
     a.triangle[t] = corners;
     const Vec3<T> position = intersect_planes(a.plane[corner(corners, 0)], a.plane[corner(corners, 1)], third);
-    const CachedVertex<T> v = {position, dot(position, position)};
+    const CachedVertex<T> v = {position, squared_norm(position)};
     a.vertex[t] = v;
     return v;
   }
