@@ -255,12 +255,13 @@ struct ConvexCell {
   using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
 
   // Planes 0-5 are the box's faces; plane q >= 6 is the bisector of the
-  // seed and the neighbour at neighbor[q] (relative to the seed), kept as
-  // that point: 12 bytes a plane, not 16 (as DualTriangle, for the cache).
-  // Compaction keeps the faces' ids.
+  // seed and the neighbour at neighbor[q - 6] (relative to the seed), kept
+  // as that point: 12 bytes a plane, not 16 (as DualTriangle, for the
+  // cache), and rebuilt as the clip built it (bisector_plane, squared_norm:
+  // bit for bit). Compaction keeps the faces' ids.
   static constexpr int kBoxPlanes = 6;
   Plane<T> box_face[kBoxPlanes];
-  Vec3<T> neighbor[MAX_PLANES];  // slots 0-5 unused
+  Vec3<T> neighbor[MAX_PLANES - kBoxPlanes];
   DualTriangle<T> triangle[MAX_TRIANGLES];
   int32_t num_planes;
   int32_t num_triangles;
@@ -273,8 +274,8 @@ struct ConvexCell {
 
   TV_HD Plane<T> plane(int q) const {
     if (q < kBoxPlanes) return box_face[q];
-    const Vec3<T> r = neighbor[q];
-    return bisector_plane(r, dot(r, r));
+    const Vec3<T> r = neighbor[q - kBoxPlanes];
+    return bisector_plane(r, squared_norm(r));
   }
 
   TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
@@ -316,7 +317,7 @@ struct ConvexCell {
   // §3.3, Alg. 3). Returns false and sets `status` when the cell cannot be
   // represented (array overflow) or the predicates were inconsistent.
   TV_HD bool clip_by_bisector(Vec3<T> r) {
-    const T r2 = dot(r, r);
+    const T r2 = squared_norm(r);
     const Plane<T> p = bisector_plane(r, r2);
     // Vertices within the tolerance band of the plane are kept. If the removed
     // region is then not a disc (inconsistent predicates: vertices of nearly
@@ -341,7 +342,7 @@ struct ConvexCell {
     const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int new_plane = num_planes++;
-    neighbor[new_plane] = r;
+    neighbor[new_plane - kBoxPlanes] = r;
     // Close the hole with a fan of triangles (s, t, p) along the boundary
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
@@ -514,7 +515,7 @@ struct ConvexCell {
     int live = kBoxPlanes;
     for (int q = kBoxPlanes; q < num_planes; ++q) {
       if (renumber[q] == kNone) continue;
-      neighbor[live] = neighbor[q];
+      neighbor[live - kBoxPlanes] = neighbor[q - kBoxPlanes];
       renumber[q] = static_cast<uint8_t>(live++);
     }
     for (int t = 0; t < num_triangles; ++t) {

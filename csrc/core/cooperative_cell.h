@@ -106,7 +106,7 @@ struct CooperativeCell {
   // (lowest first) and after the last one beyond that; with fewer new than
   // removed triangles, kept triangles from the end fill the holes left.
   TV_HD bool clip_by_bisector(Vec3<T> r) {
-    const T r2 = dot(r, r);
+    const T r2 = squared_norm(r);  // as the thread cell: the same band, bit for bit
     const Plane<T> p = bisector_plane(r, r2);
     uint32_t clipped[kRounds];
     T kept_radius2;  // this lane's largest |vertex|^2 among the vertices the plane keeps
