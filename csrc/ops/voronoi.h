@@ -11,6 +11,7 @@
 #include <ATen/ATen.h>
 
 #include <algorithm>
+#include <cstddef>
 #include <tuple>
 #include <type_traits>
 #include <vector>
@@ -23,6 +24,43 @@
 
 namespace torchvor {
 namespace ops {
+
+// One cell's outputs, by grid position, as one record: the gather to the
+// caller's rows at the end (ToRowsFunctor) then reads one or two 32-byte
+// sectors a cell (a record is 32 bytes in float32, 48 in float64), where
+// five arrays cost five or six. At 10M points the outputs outgrow the L2
+// cache and that gather was 1.8 ms of a 51 ms call (H100, benchmarks/NOTES.md).
+template <typename io_t>
+struct alignas(16) CellRecord {
+  io_t volume;
+  io_t centroid[3];
+  io_t second_moment;
+  int32_t num_neighbors;
+  int8_t status;
+};
+
+// The outputs by grid position (the numbering the passes work in): one
+// CellRecord<io_t> a position, in a byte tensor, and the caller's row of
+// each position.
+struct PositionOutputs {
+  at::Tensor records;          // (N, sizeof(CellRecord<io_t>)) uint8
+  at::Tensor row_of_position;  // (N,) int32
+
+  template <typename io_t>
+  CellRecord<io_t>* data() const {
+    return reinterpret_cast<CellRecord<io_t>*>(records.data_ptr<uint8_t>());
+  }
+  // (N,) int32 view of the records' neighbour counts.
+  template <typename io_t>
+  at::Tensor num_neighbors() const {
+    return records.view(at::kInt).select(1, offsetof(CellRecord<io_t>, num_neighbors) / sizeof(int32_t));
+  }
+};
+
+template <typename io_t>
+at::Tensor empty_records(int64_t n, const at::TensorOptions& options) {
+  return at::empty({n, int64_t(sizeof(CellRecord<io_t>))}, options.dtype(at::kByte));
+}
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
 template <typename io_t, typename T, int MAX_PLANES>
@@ -40,12 +78,8 @@ struct ClipFunctor {
   int32_t chunk;               // cells in this chunk (the column stride)
   T tolerance;
   int band_widenings;          // > 0 only in the last-resort pass
-  bool rows_by_step;           // write row t (chunk-local outputs) instead of row cells[t]
-  io_t* volume;                // (N,)
-  io_t* centroid;              // (N, 3)
-  io_t* second_moment;         // (N,)
-  int8_t* status;              // (N,)
-  int32_t* num_neighbors;      // (N,)
+  bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
+  CellRecord<io_t>* records;   // (N,) by position
 
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
@@ -73,27 +107,25 @@ struct ClipFunctor {
 
   TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
     const int64_t i = rows_by_step ? t : cells[t];
-    volume[i] = static_cast<io_t>(out.volume);
-    centroid[3 * int64_t(i)] = static_cast<io_t>(out.centroid.x);
-    centroid[3 * int64_t(i) + 1] = static_cast<io_t>(out.centroid.y);
-    centroid[3 * int64_t(i) + 2] = static_cast<io_t>(out.centroid.z);
-    second_moment[i] = static_cast<io_t>(out.second_moment);
-    status[i] = out.status;
-    num_neighbors[i] = out.neighbors;
+    records[i] = {static_cast<io_t>(out.volume),
+                  {static_cast<io_t>(out.centroid.x), static_cast<io_t>(out.centroid.y),
+                   static_cast<io_t>(out.centroid.z)},
+                  static_cast<io_t>(out.second_moment), out.neighbors, out.status};
   }
 };
 
 // After a pass, in one kernel: which status codes its cells got (bit
 // code - kNotComputed of words[0]) and the list of the cells that failed
 // (words[1] of them); the host reads the two words in one copy.
+template <typename io_t>
 struct StatusScanFunctor {
-  const int8_t* status;   // by position
+  const CellRecord<io_t>* records;  // by position
   const int32_t* cells;   // the pass's positions
   int32_t* failed_cells;  // (cells,) the failed ones (not SUCCESS or DUPLICATE), in no set order
   int32_t* words;         // two words, zeroed
 
   TV_HD void operator()(int64_t i) const {
-    const int8_t code = status[cells[i]];
+    const int8_t code = records[cells[i]].status;
     core::set_bits(words, int32_t(1) << (code - core::kNotComputed));
     core::append_if(code != core::kSuccess && code != core::kDuplicate, cells[i], failed_cells, words + 1);
   }
@@ -112,33 +144,16 @@ struct PassSettings {
   }
 };
 
-// The outputs, row i for the cell at grid position i (the numbering the
-// passes work in), and the caller's row of each position.
-struct VoronoiOutputs {
-  at::Tensor volume, centroid, second_moment, status, num_neighbors;
-  at::Tensor row_of_position;  // (N,) int32
-};
-
-// Every output starts as "not computed" (NaN, status -1, 0 neighbours), all
-// in one kernel: an element that no pass writes shows up.
+// Every record starts as "not computed" (NaN, status -1, 0 neighbours): a
+// cell that no pass writes shows up.
 template <typename io_t>
 struct PoisonFunctor {
-  io_t* volume;
-  io_t* centroid;
-  io_t* second_moment;
-  int8_t* status;
-  int32_t* num_neighbors;
+  CellRecord<io_t>* records;
 
   TV_HD void operator()(int64_t i) const {
     const io_t zero = io_t(0);
     const io_t nan = zero / zero;
-    volume[i] = nan;
-    centroid[3 * i] = nan;
-    centroid[3 * i + 1] = nan;
-    centroid[3 * i + 2] = nan;
-    second_moment[i] = nan;
-    status[i] = core::kNotComputed;
-    num_neighbors[i] = 0;
+    records[i] = {nan, {nan, nan, nan}, nan, 0, core::kNotComputed};
   }
 };
 
@@ -150,81 +165,65 @@ struct InvertOrderFunctor {
   TV_HD void operator()(int64_t p) const { position_of_row[row_of_position[p]] = static_cast<int32_t>(p); }
 };
 
-// The caller's row `row` of the outputs from the grid-ordered ones: one
-// kernel for all five outputs (five index_copy_ calls were ten launches).
-// It gathers (scattered reads, rows written in order) rather than scatters,
-// whose partial-sector writes were slow once the outputs outgrew the L2
-// cache: kernel time at 10M blue noise, H100, 4.26-4.36 ms scattering against
-// 1.79-1.84 gathering, plus 0.29 for InvertOrderFunctor, which scatters a
-// single int32 array; 1M: 0.157 against 0.070 ms (ab_compare.sh).
-// Writing the caller's rows from the clip kernel itself slowed it (scattered
-// stores: clip kernel 7.81 -> 8.45 ms at 1M blue, H100).
+// The caller's row `row` of the five outputs from the record at its grid
+// position, in one kernel. It gathers (scattered reads, rows written in
+// order) rather than scatters, whose partial-sector writes were slow once
+// the outputs outgrew the L2 cache: kernel time at 10M blue noise, H100,
+// 4.26-4.36 ms scattering five arrays against 1.79-1.84 gathering them, plus
+// 0.29 for InvertOrderFunctor, which scatters a single int32 array
+// (ab_compare.sh). Writing the caller's rows from the clip kernel itself
+// slowed it (scattered stores: clip kernel 7.81 -> 8.45 ms at 1M blue, H100).
 template <typename io_t>
 struct ToRowsFunctor {
   const int32_t* position_of_row;
-  const io_t* volume_in;
-  const io_t* centroid_in;
-  const io_t* second_moment_in;
-  const int8_t* status_in;
-  const int32_t* num_neighbors_in;
-  io_t* volume;
-  io_t* centroid;
-  io_t* second_moment;
-  int8_t* status;
-  int32_t* num_neighbors;
+  const CellRecord<io_t>* records;
+  io_t* volume;         // (N,)
+  io_t* centroid;       // (N, 3)
+  io_t* second_moment;  // (N,)
+  int8_t* status;       // (N,)
+  int32_t* num_neighbors;  // (N,)
 
   TV_HD void operator()(int64_t row) const {
-    const int64_t p = position_of_row[row];
-    volume[row] = volume_in[p];
-    centroid[3 * row] = centroid_in[3 * p];
-    centroid[3 * row + 1] = centroid_in[3 * p + 1];
-    centroid[3 * row + 2] = centroid_in[3 * p + 2];
-    second_moment[row] = second_moment_in[p];
-    status[row] = status_in[p];
-    num_neighbors[row] = num_neighbors_in[p];
+    const CellRecord<io_t> record = records[position_of_row[row]];
+    volume[row] = record.volume;
+    centroid[3 * row] = record.centroid[0];
+    centroid[3 * row + 1] = record.centroid[1];
+    centroid[3 * row + 2] = record.centroid[2];
+    second_moment[row] = record.second_moment;
+    status[row] = record.status;
+    num_neighbors[row] = record.num_neighbors;
   }
 };
 
-template <typename Exec>
-VoronoiOutputs to_caller_rows(const VoronoiOutputs& in) {
-  const auto like = [](const at::Tensor& t) { return Exec::empty(t.sizes(), t.options()); };
-  const int64_t n = in.volume.size(0);
-  const at::Tensor position_of_row = like(in.row_of_position);
-  Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(),
-                                       position_of_row.data_ptr<int32_t>()});
-  VoronoiOutputs out;
-  out.volume = like(in.volume);
-  out.centroid = like(in.centroid);
-  out.second_moment = like(in.second_moment);
-  out.status = like(in.status);
-  out.num_neighbors = like(in.num_neighbors);
-  AT_DISPATCH_FLOATING_TYPES(in.volume.scalar_type(), "torchvor::voronoi_to_rows", [&] {
-    const ToRowsFunctor<scalar_t> functor{
-        position_of_row.data_ptr<int32_t>(),    in.volume.data_ptr<scalar_t>(),
-        in.centroid.data_ptr<scalar_t>(),       in.second_moment.data_ptr<scalar_t>(),
-        in.status.data_ptr<int8_t>(),           in.num_neighbors.data_ptr<int32_t>(),
-        out.volume.data_ptr<scalar_t>(),        out.centroid.data_ptr<scalar_t>(),
-        out.second_moment.data_ptr<scalar_t>(), out.status.data_ptr<int8_t>(),
-        out.num_neighbors.data_ptr<int32_t>()};
-    Exec::for_each(n, functor);
-  });
-  return out;
+using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+
+// (volume, centroid, second_moment, status, num_neighbors) in the caller's
+// rows, from the records by position.
+template <typename Exec, typename io_t>
+CallerOutputs to_caller_rows(const PositionOutputs& in, const at::TensorOptions& options) {
+  const int64_t n = in.records.size(0);
+  const at::Tensor volume = Exec::empty({n}, options);
+  const at::Tensor centroid = Exec::empty({n, 3}, options);
+  const at::Tensor second_moment = Exec::empty({n}, options);
+  const at::Tensor status = Exec::empty({n}, options.dtype(at::kChar));
+  const at::Tensor num_neighbors = Exec::empty({n}, options.dtype(at::kInt));
+  if (n > 0) {
+    const at::Tensor position_of_row = Exec::empty({n}, options.dtype(at::kInt));
+    Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(),
+                                         position_of_row.data_ptr<int32_t>()});
+    Exec::for_each(n, ToRowsFunctor<io_t>{position_of_row.data_ptr<int32_t>(), in.data<io_t>(),
+                                          volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),
+                                          second_moment.data_ptr<io_t>(), status.data_ptr<int8_t>(),
+                                          num_neighbors.data_ptr<int32_t>()});
+  }
+  return {volume, centroid, second_moment, status, num_neighbors};
 }
 
-template <typename Exec>
-VoronoiOutputs poisoned_outputs(int64_t n, const at::TensorOptions& options) {
-  VoronoiOutputs out;
-  out.volume = at::empty({n}, options);
-  out.centroid = at::empty({n, 3}, options);
-  out.second_moment = at::empty({n}, options);
-  out.status = at::empty({n}, options.dtype(at::kChar));
-  out.num_neighbors = at::empty({n}, options.dtype(at::kInt));
-  AT_DISPATCH_FLOATING_TYPES(out.volume.scalar_type(), "torchvor::voronoi_poison", [&] {
-    const PoisonFunctor<scalar_t> functor{out.volume.data_ptr<scalar_t>(), out.centroid.data_ptr<scalar_t>(),
-                                          out.second_moment.data_ptr<scalar_t>(),
-                                          out.status.data_ptr<int8_t>(), out.num_neighbors.data_ptr<int32_t>()};
-    Exec::for_each(n, functor);
-  });
+template <typename Exec, typename io_t>
+PositionOutputs poisoned_outputs(int64_t n, const at::TensorOptions& options) {
+  PositionOutputs out;
+  out.records = empty_records<io_t>(n, options);
+  Exec::for_each(n, PoisonFunctor<io_t>{out.data<io_t>()});
   return out;
 }
 
@@ -232,7 +231,7 @@ template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
-                bool rows_by_step, VoronoiOutputs& out) {
+                bool rows_by_step, PositionOutputs& out) {
   ClipFunctor<io_t, T, MAX_PLANES> functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
@@ -240,9 +239,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
       T(core::ClipTolerance<T>::value),
       band_widenings,                 rows_by_step,
-      out.volume.data_ptr<io_t>(),    out.centroid.data_ptr<io_t>(),
-      out.second_moment.data_ptr<io_t>(), out.status.data_ptr<int8_t>(),
-      out.num_neighbors.data_ptr<int32_t>()};
+      out.data<io_t>()};
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size and k, and
   // TORCHVOR_CELLS=thread|cooperative overrides it (use_cooperative).
@@ -261,7 +258,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
 template <typename Exec, typename io_t, typename T>
 void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                     const at::Tensor& neighbors, int tier, VoronoiOutputs& out) {
+                     const at::Tensor& neighbors, int tier, PositionOutputs& out) {
   switch (tier) {
     case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
     case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
@@ -275,34 +272,25 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
 template <typename io_t>
 void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                              const at::Tensor& neighbors, bool column_major, VoronoiOutputs& out) {
+                              const at::Tensor& neighbors, bool column_major, PositionOutputs& out) {
   const int64_t m = cells.size(0);
   const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU).contiguous(); };
   const c10::optional<at::Tensor> batch_cpu =
       batch.has_value() ? c10::optional<at::Tensor>(cpu(*batch)) : c10::nullopt;
-  VoronoiOutputs part;
-  const auto options = points.options().device(at::kCPU);
-  part.volume = at::empty({m}, options);
-  part.centroid = at::empty({m, 3}, options);
-  part.second_moment = at::empty({m}, options);
-  part.status = at::empty({m}, options.dtype(at::kChar));
-  part.num_neighbors = at::empty({m}, options.dtype(at::kInt));
+  PositionOutputs part;
+  part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
       cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
       /*band_widenings=*/6, /*rows_by_step=*/true, part);
   const at::Tensor rows = cells.to(at::kLong);
-  out.volume.index_copy_(0, rows, part.volume.to(out.volume.device()));
-  out.centroid.index_copy_(0, rows, part.centroid.to(out.centroid.device()));
-  out.second_moment.index_copy_(0, rows, part.second_moment.to(out.second_moment.device()));
-  out.status.index_copy_(0, rows, part.status.to(out.status.device()));
-  out.num_neighbors.index_copy_(0, rows, part.num_neighbors.to(out.num_neighbors.device()));
+  out.records.index_copy_(0, rows, part.records.to(out.records.device()));
 }
 
 // One pass over `cells` (int32 point ids), in chunks of bounded memory.
 template <typename Exec, typename io_t>
 void run_pass(const at::Tensor& points, const at::Tensor& box,
               const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
-              const PassSettings& pass, int64_t memory_budget, VoronoiOutputs& out) {
+              const PassSettings& pass, int64_t memory_budget, PositionOutputs& out) {
   TORCH_CHECK(cells.is_contiguous(), "torchvor: internal error: cell list not contiguous");
   const int64_t bytes_per_cell = pass.k * int64_t(sizeof(io_t) + sizeof(int32_t));
   const int64_t chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
@@ -332,45 +320,27 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
 // pilot k costs latency: on an H200 the pilot at k = 96 took ~1 ms of a 12 ms
 // call). The 90th percentile of the neighbours they needed (plus a little)
 // makes most cells succeed in one pass and the rest retry cheaply.
-template <typename Exec, typename Run>
-int64_t pilot_k(const Grid& grid, int64_t largest_cloud, const Run& run, VoronoiOutputs& out) {
+template <typename Exec, typename io_t, typename Run>
+int64_t pilot_k(const Grid& grid, int64_t largest_cloud, const Run& run, PositionOutputs& out) {
   const int64_t n = grid.sorted_index.size(0);
   const int64_t stride = std::max<int64_t>(1, n / 1024);
   const at::Tensor sample = grid.sorted_index.slice(0, 0, n, stride).contiguous();
   run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput});
-  const at::Tensor needed = out.num_neighbors.index_select(0, sample).to(at::kFloat);
+  const at::Tensor needed = out.num_neighbors<io_t>().index_select(0, sample).to(at::kFloat);
   const int64_t p90 = static_cast<int64_t>(at::quantile(needed, 0.9).item<float>());
   return std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2));
 }
 
-template <typename Exec>
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_forward(
-    const at::Tensor& points_in, const at::Tensor& box_in, const c10::optional<at::Tensor>& batch_in,
-    c10::optional<int64_t> k_in, int64_t memory_budget) {
-  check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
-  const int64_t n = points_in.size(0);
-  const int64_t num_boxes = box_in.size(0);
-  const at::Tensor points = points_in.contiguous();
-  const at::Tensor box = box_in.contiguous();
-  const c10::optional<at::Tensor> batch =
-      batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
-  // One read from the device for the value checks and the grid: the points'
-  // bounds per batch element and the box. Without a batch, the bounds also
-  // say whether every point is finite (see point_bounds); with one, that is
-  // checked separately.
-  ValueChecks values;
-  if (batch.has_value()) values.finite(points, "points");
-  std::vector<at::Tensor> to_read = values.conditions();
-  to_read.push_back(box);
-  std::vector<double> read;
-  const at::Tensor bounds = point_bounds(points, batch, num_boxes, to_read, &read);
-  values.verify(read.data());
-  check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
-  VoronoiOutputs out = poisoned_outputs<Exec>(n, points.options());
-  if (n == 0) {
-    return {out.volume, out.centroid, out.second_moment, out.status, out.num_neighbors};
-  }
-
+// The passes of voronoi_forward on checked inputs; `bounds` is point_bounds()
+// of the points, already read.
+template <typename Exec, typename io_t>
+CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
+                             const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
+                             c10::optional<int64_t> k_in, int64_t memory_budget) {
+  const int64_t n = points.size(0);
+  const int64_t num_boxes = box.size(0);
+  PositionOutputs out = poisoned_outputs<Exec, io_t>(n, points.options());
+  if (n == 0) return to_caller_rows<Exec, io_t>(out, points.options());
   // The largest batch element bounds the useful k: a query that asks for as
   // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
   int64_t largest_cloud = 0;  // from the counts already read with the bounds
@@ -395,9 +365,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
                                    : c10::nullopt;
   };
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass) {
-    AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
-      run_pass<Exec, scalar_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, out);
-    });
+    run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, out);
   };
   // The grid's density follows k (points_per_cell_for). Without k, the pilot
   // runs on the density of k = 32 and the grid is rebuilt when the measured
@@ -409,7 +377,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
   sort_into_grid(first_points_per_cell);
   int64_t k = k_in.value_or(0);
   if (!k_in.has_value()) {
-    k = pilot_k<Exec>(grid, largest_cloud, run, out);
+    k = pilot_k<Exec, io_t>(grid, largest_cloud, run, out);
     if (points_per_cell_for(k) >= 1.5 * first_points_per_cell) sort_into_grid(points_per_cell_for(k));
   }
   PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
@@ -424,8 +392,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
     const at::Tensor words = at::zeros({2}, pending.options());
     Exec::for_each(pending.size(0),
-                   StatusScanFunctor{out.status.data_ptr<int8_t>(), pending.data_ptr<int32_t>(),
-                                     failed_cells.data_ptr<int32_t>(), words.data_ptr<int32_t>()});
+                   StatusScanFunctor<io_t>{out.data<io_t>(), pending.data_ptr<int32_t>(),
+                                           failed_cells.data_ptr<int32_t>(), words.data_ptr<int32_t>()});
     const at::Tensor read = words.to(at::kCPU);
     const int32_t seen_bits = read.data_ptr<int32_t>()[0];
     const int64_t failed = read.data_ptr<int32_t>()[1];
@@ -449,8 +417,36 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_f
     if (next == pass) break;  // nothing left to raise
     pass = next;
   }
-  const VoronoiOutputs by_row = to_caller_rows<Exec>(out);
-  return {by_row.volume, by_row.centroid, by_row.second_moment, by_row.status, by_row.num_neighbors};
+  return to_caller_rows<Exec, io_t>(out, points.options());
+}
+
+template <typename Exec>
+CallerOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
+                              const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
+                              int64_t memory_budget) {
+  check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
+  const int64_t num_boxes = box_in.size(0);
+  const at::Tensor points = points_in.contiguous();
+  const at::Tensor box = box_in.contiguous();
+  const c10::optional<at::Tensor> batch =
+      batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
+  // One read from the device for the value checks and the grid: the points'
+  // bounds per batch element and the box. Without a batch, the bounds also
+  // say whether every point is finite (see point_bounds); with one, that is
+  // checked separately.
+  ValueChecks values;
+  if (batch.has_value()) values.finite(points, "points");
+  std::vector<at::Tensor> to_read = values.conditions();
+  to_read.push_back(box);
+  std::vector<double> read;
+  const at::Tensor bounds = point_bounds(points, batch, num_boxes, to_read, &read);
+  values.verify(read.data());
+  check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
+  CallerOutputs result;
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
+    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, k_in, memory_budget);
+  });
+  return result;
 }
 
 }  // namespace ops
