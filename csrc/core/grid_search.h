@@ -24,12 +24,17 @@ namespace core {
 template <typename T>
 struct GridView {
   const T* sorted_points;        // (N, 3) points in cell order
-  const int32_t* sorted_index;   // (N,) original index of each sorted point
+  const int32_t* sorted_index;   // (N,) original index of each sorted point, or nullptr:
+                                 // the points are numbered in sorted order (voronoi's grid)
   const int32_t* cell_start;     // (num_cells + 1,) first sorted point of each cell
   const T* origin;               // (B, 3) low corner of each batch element's grid
   const T* cell_size;            // (B,) edge length of the cubic grid cells
   const int32_t* dims;           // (B, 3) number of cells along x, y, z
   const int32_t* cell_offset;    // (B,) id of each batch element's first cell
+
+  // Original index of sorted point s. Without the index array, one load
+  // fewer a candidate in the search loops.
+  TV_HD int32_t original_index(int32_t s) const { return sorted_index ? sorted_index[s] : s; }
 };
 
 // Cell coordinate of x along one axis, clamped into the grid.
@@ -221,13 +226,13 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
   };
   int32_t s = begin;
   for (; s < end && !heap.full(); ++s) {
-    const int32_t original = grid.sorted_index[s];
+    const int32_t original = grid.original_index(s);
     if (original != excluded) heap.push(candidate(s, original));
   }
   if (s == end) return;
   HeapKey<T> worst = heap.key[0];
   for (; s < end; ++s) {
-    const int32_t original = grid.sorted_index[s];
+    const int32_t original = grid.original_index(s);
     const HeapKey<T> item = candidate(s, original);
     // The excluded point (the query itself, at distance 0) passes the first test.
     if (item < worst && original != excluded) {
@@ -396,7 +401,7 @@ TV_HD void knn_search_cooperative(const GridView<T>& grid, int64_t batch, Vec3<T
         HeapKey<T> item = HeapKey<T>::make(T(0), -1);
         bool candidate = false;
         if (has_point) {
-          const int32_t original = grid.sorted_index[s];
+          const int32_t original = grid.original_index(s);
           item = HeapKey<T>::make(squared_distance(load_vec3(grid.sorted_points + 3 * s), query), original);
           candidate = original != excluded && (!heap.full() || item < heap.key[0]);
           ++s;

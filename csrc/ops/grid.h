@@ -23,10 +23,14 @@ struct Grid {
   at::Tensor cell_size;      // (B,) points' dtype
   at::Tensor dims;           // (B, 3) int32
   at::Tensor cell_offset;    // (B,) int32
+  // sorted_index is the identity (the points were numbered in sorted order):
+  // the kernels then skip reading it.
+  bool index_is_position = false;
 
   template <typename T>
   core::GridView<T> view() const {
-    return {sorted_points.data_ptr<T>(),   sorted_index.data_ptr<int32_t>(),
+    return {sorted_points.data_ptr<T>(),
+            index_is_position ? nullptr : sorted_index.data_ptr<int32_t>(),
             cell_start.data_ptr<int32_t>(), origin.data_ptr<T>(),
             cell_size.data_ptr<T>(),        dims.data_ptr<int32_t>(),
             cell_offset.data_ptr<int32_t>()};

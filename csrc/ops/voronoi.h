@@ -360,6 +360,7 @@ CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     out.row_of_position = sorted.sorted_index;
     grid = sorted;
     grid.sorted_index = at::arange(n, sorted.sorted_index.options());
+    grid.index_is_position = true;
     work_points = sorted.sorted_points;
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
                                    : c10::nullopt;
