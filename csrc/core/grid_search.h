@@ -133,18 +133,25 @@ struct NeighborHeap {
   TV_HD void replace_root(HeapKey<T> item) { sift_down(0, size, item); }
 
   // Place `item` at position e of the heap [0, n) and restore heap order.
+  // A node with all its children (every node but the last inner one) takes
+  // them without a test each: a per-child bounds test made each level of
+  // the GPU's sift three branches, and replacing the root was about 40% of
+  // the kNN kernel's instructions (ncu, H100, 1M blue noise, k=24).
   TV_HD void sift_down(int32_t e, int32_t n, HeapKey<T> item) {
     for (int32_t first = kArity * e + 1; first < n; first = kArity * e + 1) {
       int32_t child = first;
       HeapKey<T> larger = key[first];
-      TV_UNROLL
-      for (int32_t c = first + 1; c < first + kArity; ++c) {
-        if (c < n) {
-          const HeapKey<T> other = key[c];
-          const bool bigger = larger < other;
-          larger = HeapKey<T>::select(bigger, other, larger);
-          child += (c - child) & -int32_t(bigger);
-        }
+      const auto take = [&](int32_t c) {
+        const HeapKey<T> other = key[c];
+        const bool bigger = larger < other;
+        larger = HeapKey<T>::select(bigger, other, larger);
+        child += (c - child) & -int32_t(bigger);
+      };
+      if (first + kArity <= n) {
+        TV_UNROLL
+        for (int32_t c = first + 1; c < first + kArity; ++c) take(c);
+      } else {
+        for (int32_t c = first + 1; c < n; ++c) take(c);
       }
       if (!(item < larger)) break;
       key[e] = larger;
