@@ -281,6 +281,10 @@ struct Rings {
 
   TV_HD T gap_z(int32_t z) const { return slab_gap(query.z, origin.z, h, z, margin); }
 
+  // The i-th coordinate along axis a counted from the query's cell outwards:
+  // c, c - 1, c + 1, c - 2, c + 2, ...
+  TV_HD int32_t center_out(int a, int32_t i) const { return cell[a] + ((i & 1) ? -((i + 1) >> 1) : (i >> 1)); }
+
   // The points of row (z, y) of shell r that may beat the heap's worst
   // candidate (strictly: an equally far point with a lower index would still
   // win): on a face of the shell, the row's cells within reach (contiguous
@@ -351,11 +355,17 @@ TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int
   heap.size = 0;
   const Rings<T> rings(grid, batch, query);
   for (int32_t r = 0;; ++r) {
-    for (int32_t z = rings.low(2, r); z <= rings.high(2, r); ++z) {
+    // Slabs and rows from the query's own outwards: the heap fills with
+    // nearer candidates first, so fewer later ones replace its root.
+    for (int32_t step_z = 0; step_z <= 2 * r; ++step_z) {
+      const int32_t z = rings.center_out(2, step_z);
+      if (z < rings.low(2, r) || z > rings.high(2, r)) continue;
       // A whole slab of rows beyond the worst candidate: skip it.
       const T gap_z = rings.gap_z(z);
       if (heap.full() && gap_z * gap_z > heap.worst()) continue;
-      for (int32_t y = rings.low(1, r); y <= rings.high(1, r); ++y) {
+      for (int32_t step_y = 0; step_y <= 2 * r; ++step_y) {
+        const int32_t y = rings.center_out(1, step_y);
+        if (y < rings.low(1, r) || y > rings.high(1, r)) continue;
         const RowRanges ranges = rings.row(r, z, y, gap_z, grid.cell_start, heap);
         TV_UNROLL
         for (int i = 0; i < 2; ++i) {
