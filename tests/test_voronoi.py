@@ -723,7 +723,7 @@ def test_tiny_k(device, gen, k):
 
 
 def test_tiny_memory_budget(device, dtype, gen, cells_impl):
-    """memory_budget=1 forces the smallest chunks (1024 cells): identical results."""
+    """memory_budget=1 forces the smallest chunks (at most 1024 cells): identical results."""
     points = rand(2600, gen, dtype, device)
     ref = run(points, UNIT)
     cells = run(points, UNIT, memory_budget=1)

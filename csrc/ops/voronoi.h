@@ -292,8 +292,13 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
               const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
               const PassSettings& pass, int64_t memory_budget, PositionOutputs& out) {
   TORCH_CHECK(cells.is_contiguous(), "torchvor: internal error: cell list not contiguous");
-  const int64_t bytes_per_cell = pass.k * int64_t(sizeof(io_t) + sizeof(int32_t));
-  const int64_t chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
+  // The budget holds the chunk's neighbour ids. Chunks of equal size: a
+  // small last chunk would leave most of the GPU idle while its few cells
+  // run, and every chunk ends in such a tail, so fewer chunks are better.
+  const int64_t bytes_per_cell = pass.k * int64_t(sizeof(int32_t));
+  const int64_t largest_chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
+  const int64_t chunks = std::max<int64_t>(1, (cells.size(0) + largest_chunk - 1) / largest_chunk);
+  const int64_t chunk = (cells.size(0) + chunks - 1) / chunks;
   for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
     const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
     const int64_t m = part.size(0);
