@@ -17,20 +17,18 @@ namespace ops {
 
 struct Grid {
   at::Tensor sorted_points;  // (N, 3) points ordered by cell
-  at::Tensor sorted_index;   // (N,) int32: original index of each sorted point
+  at::Tensor sorted_index;   // (N,) int32: original index of each sorted point, or undefined:
+                             // the points are numbered in sorted order (the kernels then read no index)
   at::Tensor cell_start;     // (num_cells + 1,) int32
   at::Tensor origin;         // (B, 3) points' dtype
   at::Tensor cell_size;      // (B,) points' dtype
   at::Tensor dims;           // (B, 3) int32
   at::Tensor cell_offset;    // (B,) int32
-  // sorted_index is the identity (the points were numbered in sorted order):
-  // the kernels then skip reading it.
-  bool index_is_position = false;
 
   template <typename T>
   core::GridView<T> view() const {
     return {sorted_points.data_ptr<T>(),
-            index_is_position ? nullptr : sorted_index.data_ptr<int32_t>(),
+            sorted_index.defined() ? sorted_index.data_ptr<int32_t>() : nullptr,
             cell_start.data_ptr<int32_t>(), origin.data_ptr<T>(),
             cell_size.data_ptr<T>(),        dims.data_ptr<int32_t>(),
             cell_offset.data_ptr<int32_t>()};

@@ -326,10 +326,10 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
 // call). The 90th percentile of the neighbours they needed (plus a little)
 // makes most cells succeed in one pass and the rest retry cheaply.
 template <typename Exec, typename io_t, typename Run>
-int64_t pilot_k(const Grid& grid, int64_t largest_cloud, const Run& run, PositionOutputs& out) {
-  const int64_t n = grid.sorted_index.size(0);
+int64_t pilot_k(const at::Tensor& positions, int64_t largest_cloud, const Run& run, PositionOutputs& out) {
+  const int64_t n = positions.size(0);
   const int64_t stride = std::max<int64_t>(1, n / 1024);
-  const at::Tensor sample = grid.sorted_index.slice(0, 0, n, stride).contiguous();
+  const at::Tensor sample = positions.slice(0, 0, n, stride).contiguous();
   run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput});
   const at::Tensor needed = out.num_neighbors<io_t>().index_select(0, sample).to(at::kFloat);
   const int64_t p90 = static_cast<int64_t>(at::quantile(needed, 0.9).item<float>());
@@ -357,15 +357,17 @@ CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   // threads) read nearby neighbour coordinates from cache; the outputs go
   // to the caller's rows at the end. The sort is stable, so exact
   // duplicates keep their order and "the lowest index keeps the cell" holds.
+  // The grid over the points by position has no index array (the kNN then
+  // reads no index a candidate: GridView::original_index).
   Grid grid;
   at::Tensor work_points;  // points by position
   c10::optional<at::Tensor> work_batch;
+  const at::Tensor positions = at::arange(n, points.options().dtype(at::kInt));  // every cell, in grid order
   const auto sort_into_grid = [&](double points_per_cell) {
     const Grid sorted = build_grid<Exec>(points, batch, num_boxes, points_per_cell, bounds);
     out.row_of_position = sorted.sorted_index;
     grid = sorted;
-    grid.sorted_index = at::arange(n, sorted.sorted_index.options());
-    grid.index_is_position = true;
+    grid.sorted_index = at::Tensor();
     work_points = sorted.sorted_points;
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
                                    : c10::nullopt;
@@ -383,11 +385,11 @@ CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   sort_into_grid(first_points_per_cell);
   int64_t k = k_in.value_or(0);
   if (!k_in.has_value()) {
-    k = pilot_k<Exec, io_t>(grid, largest_cloud, run, out);
+    k = pilot_k<Exec, io_t>(positions, largest_cloud, run, out);
     if (points_per_cell_for(k) >= 1.5 * first_points_per_cell) sort_into_grid(points_per_cell_for(k));
   }
   PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
-  at::Tensor pending = grid.sorted_index;  // every position, in grid order
+  at::Tensor pending = positions;
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
     run(pending, pass);
