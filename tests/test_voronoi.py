@@ -962,8 +962,12 @@ def test_compile_voronoi(device, dtype, gen):
 def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
     """TORCHVOR_POINTS_PER_CELL_SCALE (benchmarks/sweep_points_per_cell.py)
     scales the points per grid cell of the kNN searches: another grid finds
-    the same neighbours (ties go to the lower index), so the kNN and the cells
-    are equal to the default's, bit for bit."""
+    the same neighbours (ties go to the lower index), so the kNN is equal to
+    the default's, bit for bit, and so are the cells in float64. In float32,
+    two neighbours of a cell can be exactly equally far (one cell in 5000
+    with some seeds, e.g. TORCHVOR_TEST_SEED=1800692895); voronoi's kNN numbers
+    points by their grid position, so such a pair is clipped in an order that
+    depends on the grid: the same cell, its sums rounded in another order."""
     points = rand(5000, gen, dtype, device)
     default_cells = torchvor.voronoi(points, UNIT, k=24)
     default_knn = torchvor.knn(points, 16)
@@ -971,8 +975,13 @@ def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
     cells = torchvor.voronoi(points, UNIT, k=24)
     knn = torchvor.knn(points, 16)
     check_global(cells, points, [box_of(points, UNIT)], dtype)
-    for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+    for name in ("status", "neighbors"):
         assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
+    for name in ("volume", "centroid", "second_moment"):
+        if dtype == torch.float64:
+            assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
+        else:
+            torch.testing.assert_close(getattr(cells, name), getattr(default_cells, name), rtol=1e-5, atol=0)
     assert torch.equal(default_knn.idx, knn.idx)
     assert torch.equal(default_knn.dist2, knn.dist2)
 
