@@ -219,6 +219,54 @@ def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, s
     torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
 
 
+@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "perturbed", "duplicates", "batch", "k6"])
+def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, seed, kind):
+    """A thread cell starts from the tetrahedron of four of its first
+    neighbours' bisectors where they surround the seed inside the box, else
+    from the box (csrc/core/convex_cell.h, start_tetrahedron; warp cells
+    always start from the box). TORCHVOR_CELL_START=box forces the box: the
+    same cells, up to rounding, with the same statuses and neighbour counts.
+    On white noise some volumes differ in their last bits: the tetrahedra
+    were used. Lattices (flat first neighbours), points near the box,
+    duplicates, batches and k < 7 (no tetrahedron) take the box too."""
+    monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, on either device
+    batch, box, k = None, UNIT, None
+    if kind == "white":
+        points = rand(3000, gen, dtype, device)
+    elif kind == "clustered":
+        points = samples.clustered(3000, seed=seed, dtype=dtype).to(device)
+    elif kind == "lattice":
+        points = samples.lattice(10, dtype=dtype).to(device)
+    elif kind == "perturbed":
+        points = samples.perturbed_grid(3000, seed=seed, dtype=dtype).to(device)
+    elif kind == "duplicates":
+        points = rand(1000, gen, dtype, device)
+        points = torch.cat([points, points[:300]])
+    elif kind == "batch":
+        batch = ragged_batch([1500, 0, 2, 900], device)
+        points = rand(2402, gen, dtype, device)
+        box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 4, dtype=dtype, device=device)
+    else:
+        points = rand(3000, gen, dtype, device)
+        k = 6
+    results = {}
+    for start in ("box", "tetrahedron"):
+        monkeypatch.setenv("TORCHVOR_CELL_START", start)
+        results[start] = torchvor.voronoi(points, box, batch=batch, k=k)
+    from_box, from_tetrahedron = results["box"], results["tetrahedron"]
+    boxes = [box_of(points, UNIT)] * (1 if batch is None else 4)
+    check_global(from_tetrahedron, points, boxes, dtype, batch=batch)
+    assert torch.equal(from_box.status, from_tetrahedron.status)
+    assert torch.equal(from_box.neighbors, from_tetrahedron.neighbors)
+    rtol = RTOL[dtype]
+    size = float(from_box.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(from_tetrahedron.volume, from_box.volume, rtol=rtol, atol=rtol * size ** 3)
+    torch.testing.assert_close(from_tetrahedron.second_moment, from_box.second_moment, rtol=rtol, atol=rtol * size ** 5)
+    torch.testing.assert_close(from_tetrahedron.centroid, from_box.centroid, rtol=0, atol=rtol * size)
+    if kind == "white":
+        assert not torch.equal(from_box.volume, from_tetrahedron.volume)
+
+
 @pytest.mark.parametrize("k", [4, None])
 def test_cooperative_knn_in_voronoi(monkeypatch, device, dtype, gen, k):
     """The passes' neighbour searches by a thread or a group of lanes per

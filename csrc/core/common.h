@@ -3,6 +3,7 @@
 // compiler (CPU path) and with nvcc (CUDA path): one geometry, two backends.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 
 #if defined(__CUDACC__)
@@ -143,12 +144,14 @@ struct ScratchArena {
   }
 };
 
-// Full unrolling of a loop with a compile-time trip count (nvcc; host
-// compilers unroll on their own judgement).
+// Full unrolling of a loop with a compile-time trip count, or none (nvcc;
+// host compilers unroll on their own judgement).
 #if defined(__CUDACC__)
 #define TV_UNROLL _Pragma("unroll")
+#define TV_NO_UNROLL _Pragma("unroll 1")
 #else
 #define TV_UNROLL
+#define TV_NO_UNROLL
 #endif
 
 // Index of the lowest set bit (bits != 0) and number of set bits.
@@ -166,6 +169,10 @@ TV_HD int bit_count(uint32_t bits) {
   return __builtin_popcount(bits);
 #endif
 }
+
+// Square root (correctly rounded on both backends), 0 for x <= 0.
+TV_HD float sqrt_of(float x) { return x > 0.0f ? sqrtf(x) : 0.0f; }
+TV_HD double sqrt_of(double x) { return x > 0.0 ? sqrt(x) : 0.0; }
 
 template <typename T>
 TV_HD T min_of(T a, T b) { return a < b ? a : b; }

@@ -56,9 +56,6 @@ TV_HD T slab_gap(T x, T origin, T cell_size, int32_t c, T margin) {
   return max_of(gap - margin, T(0));
 }
 
-TV_HD float sqrt_of(float x) { return x > 0.0f ? sqrtf(x) : 0.0f; }
-TV_HD double sqrt_of(double x) { return x > 0.0 ? sqrt(x) : 0.0; }
-
 // A candidate neighbour as one comparable key, ordered by (squared distance,
 // index) so that ties go to the lower index. For float32 the two fit in one
 // uint64 (non-negative float bits sort like unsigned integers): one integer

@@ -12,6 +12,8 @@
 
 #include <algorithm>
 #include <cstddef>
+#include <cstdlib>
+#include <cstring>
 #include <tuple>
 #include <type_traits>
 #include <vector>
@@ -78,6 +80,7 @@ struct ClipFunctor {
   int32_t chunk;               // cells in this chunk (the column stride)
   T tolerance;
   int band_widenings;          // > 0 only in the last-resort pass
+  bool tetrahedron_start;      // core::compute_cell: from a tetrahedron where one fits (false: the box)
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
 
@@ -102,7 +105,7 @@ struct ClipFunctor {
     return core::compute_cell(cell, points, cell_id,
                               neighbors + (neighbors_column_major ? t : t * int64_t(k)),
                               neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b,
-                              tolerance, band_widenings);
+                              tolerance, band_widenings, tetrahedron_start);
   }
 
   TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
@@ -227,6 +230,14 @@ PositionOutputs poisoned_outputs(int64_t n, const at::TensorOptions& options) {
   return out;
 }
 
+// Whether cells start from a tetrahedron of their first neighbours where
+// one fits (core::start_tetrahedron), as by default, or always from the box:
+// TORCHVOR_CELL_START=box (the tests compare the two; benchmarks time them).
+inline bool tetrahedron_start() {
+  const char* forced = std::getenv("TORCHVOR_CELL_START");
+  return !(forced != nullptr && std::strcmp(forced, "box") == 0);
+}
+
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
@@ -238,8 +249,8 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
       static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
       T(core::ClipTolerance<T>::value),
-      band_widenings,                 rows_by_step,
-      out.data<io_t>()};
+      band_widenings,                 tetrahedron_start(),
+      rows_by_step,                   out.data<io_t>()};
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size and k, and
   // TORCHVOR_CELLS=thread|cooperative overrides it (use_cooperative).
