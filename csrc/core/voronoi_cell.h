@@ -83,10 +83,11 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
   NeighborReader<typename Cell::Lanes, io_t, T> reader{cell.group(), points, neighbors, stride, k, seed};
   // The first cell: the tetrahedron of four of the first neighbours where
   // they surround the seed inside the box, else the box (start_choice,
-  // start_tetrahedron; cells with kTetrahedronStart, and `tetrahedron_start`
-  // false: always the box). Neither a missing neighbour nor a duplicate of
-  // the seed may be among them. The chosen ones are read again rather than
-  // kept: the registers hold only their directions meanwhile.
+  // start_tetrahedron). A cell type without kTetrahedronStart, or
+  // `tetrahedron_start` false, always starts from the box. Neither a missing
+  // neighbour nor a duplicate of the seed may be among the four. The chosen
+  // ones are read again rather than kept: the registers hold only their
+  // directions meanwhile.
   uint32_t used_by_start = 0u;  // bit n: neighbour n bounds the start tetrahedron
   if constexpr (Cell::kTetrahedronStart) {
     using S = typename ChoiceScalar<T>::type;
