@@ -37,6 +37,34 @@ def ragged_batch(sizes, device):
     return torch.repeat_interleave(torch.arange(len(sizes)), torch.tensor(sizes)).to(device)
 
 
+def assert_same_cells(cells, expected, dtype):
+    """The same statuses and neighbour counts, and the same integrals up to
+    rounding (relative, or absolute at the scale of the mean cell)."""
+    assert torch.equal(expected.status, cells.status)
+    assert torch.equal(expected.neighbors, cells.neighbors)
+    rtol = RTOL[dtype]
+    size = float(expected.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(cells.volume, expected.volume, rtol=rtol, atol=rtol * size ** 3)
+    torch.testing.assert_close(cells.second_moment, expected.second_moment, rtol=rtol, atol=rtol * size ** 5)
+    torch.testing.assert_close(cells.centroid, expected.centroid, rtol=0, atol=rtol * size)
+
+
+def point_set(kind, gen, seed, dtype, device):
+    """The point sets that tests comparing two ways of computing the cells
+    run on: 3000 uniform, clustered or perturbed-grid points, a 10^3
+    lattice, or 1000 uniform points and 300 exact copies of some of them."""
+    if kind == "clustered":
+        return samples.clustered(3000, seed=seed, dtype=dtype).to(device)
+    if kind == "lattice":
+        return samples.lattice(10, dtype=dtype).to(device)
+    if kind == "perturbed":
+        return samples.perturbed_grid(3000, seed=seed, dtype=dtype).to(device)
+    if kind == "duplicates":
+        points = rand(1000, gen, dtype, device)
+        return torch.cat([points, points[:300]])
+    return rand(3000, gen, dtype, device)
+
+
 def box_of(points, box):
     """(lo, hi) float64 numpy, as torchvor.voronoi interprets `box` (no batch)."""
     if box is None:
@@ -191,32 +219,15 @@ def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, s
     and separate roundings moved the security radius by one neighbour in ~6%
     of clustered sets, so both run the baseline loop here."""
     monkeypatch.setenv("TORCHVOR_CPU_ISA", "baseline")
-    k = None
-    if kind == "white":
-        points = rand(3000, gen, dtype, device)
-    elif kind == "clustered":
-        points = samples.clustered(3000, seed=seed, dtype=dtype).to(device)
-    elif kind == "lattice":
-        points = samples.lattice(10, dtype=dtype).to(device)
-    elif kind == "duplicates":
-        points = rand(1000, gen, dtype, device)
-        points = torch.cat([points, points[:300]])
-    else:
-        points = rand(3000, gen, dtype, device)
-        k = 4  # every cell retried: the later passes too
+    points = point_set(kind, gen, seed, dtype, device)
+    k = 4 if kind == "small_k" else None  # small_k: every cell retried, the later passes too
     results = {}
     for impl in ("thread", "cooperative"):
         monkeypatch.setenv("TORCHVOR_CELLS", impl)
         results[impl] = torchvor.voronoi(points, UNIT, k=k)
     thread, coop = results["thread"], results["cooperative"]
     check_global(coop, points, [box_of(points, UNIT)], dtype)
-    assert torch.equal(thread.status, coop.status)
-    assert torch.equal(thread.neighbors, coop.neighbors)
-    rtol = RTOL[dtype]
-    size = float(thread.volume.double().mean()) ** (1 / 3)
-    torch.testing.assert_close(coop.volume, thread.volume, rtol=rtol, atol=rtol * size ** 3)
-    torch.testing.assert_close(coop.second_moment, thread.second_moment, rtol=rtol, atol=rtol * size ** 5)
-    torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
+    assert_same_cells(coop, thread, dtype)
 
 
 @pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "perturbed", "duplicates", "batch", "k6"])
@@ -230,25 +241,13 @@ def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, se
     were used. Lattices (flat first neighbours), points near the box,
     duplicates, batches and k < 7 (no tetrahedron) take the box too."""
     monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, on either device
-    batch, box, k = None, UNIT, None
-    if kind == "white":
-        points = rand(3000, gen, dtype, device)
-    elif kind == "clustered":
-        points = samples.clustered(3000, seed=seed, dtype=dtype).to(device)
-    elif kind == "lattice":
-        points = samples.lattice(10, dtype=dtype).to(device)
-    elif kind == "perturbed":
-        points = samples.perturbed_grid(3000, seed=seed, dtype=dtype).to(device)
-    elif kind == "duplicates":
-        points = rand(1000, gen, dtype, device)
-        points = torch.cat([points, points[:300]])
-    elif kind == "batch":
+    batch, box, k = None, UNIT, 6 if kind == "k6" else None
+    if kind == "batch":
         batch = ragged_batch([1500, 0, 2, 900], device)
         points = rand(2402, gen, dtype, device)
         box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 4, dtype=dtype, device=device)
     else:
-        points = rand(3000, gen, dtype, device)
-        k = 6
+        points = point_set(kind, gen, seed, dtype, device)
     results = {}
     for start in ("box", "tetrahedron"):
         monkeypatch.setenv("TORCHVOR_CELL_START", start)
@@ -256,13 +255,7 @@ def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, se
     from_box, from_tetrahedron = results["box"], results["tetrahedron"]
     boxes = [box_of(points, UNIT)] * (1 if batch is None else 4)
     check_global(from_tetrahedron, points, boxes, dtype, batch=batch)
-    assert torch.equal(from_box.status, from_tetrahedron.status)
-    assert torch.equal(from_box.neighbors, from_tetrahedron.neighbors)
-    rtol = RTOL[dtype]
-    size = float(from_box.volume.double().mean()) ** (1 / 3)
-    torch.testing.assert_close(from_tetrahedron.volume, from_box.volume, rtol=rtol, atol=rtol * size ** 3)
-    torch.testing.assert_close(from_tetrahedron.second_moment, from_box.second_moment, rtol=rtol, atol=rtol * size ** 5)
-    torch.testing.assert_close(from_tetrahedron.centroid, from_box.centroid, rtol=0, atol=rtol * size)
+    assert_same_cells(from_tetrahedron, from_box, dtype)
     if kind == "white":
         assert not torch.equal(from_box.volume, from_tetrahedron.volume)
 
