@@ -184,7 +184,7 @@ TV_HD S surround(Vec3<S> u0, Vec3<S> ub, Vec3<S> uc, Vec3<S> ud, bool& positive)
 // length 0) surround the seed best with neighbour 0: the first best triple
 // in lexicographic order, if any reaches kStartMinSurround. The loop over b
 // is not unrolled: unrolled, the twenty triples took 184 registers a thread
-// (72 so), which would halve the clip kernel's resident blocks.
+// (71 so), which would halve the clip kernel's resident blocks.
 template <typename S>
 TV_HD StartChoice start_choice(const Vec3<S> (&unit)[kStartCandidates]) {
   StartChoice choice;
@@ -434,7 +434,7 @@ struct ConvexCell {
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
-    for (int q = 0; q < kBoxPlanes; ++q) box_face[q] = box_plane(q, lo, hi);
+    init_faces_and_settings(lo, hi, relative_tolerance, band_widenings);
     num_planes = kBoxPlanes;
     num_triangles = 8;
     radius2 = T(0);
@@ -442,9 +442,6 @@ struct ConvexCell {
       const uint32_t corners = box_triangle(t);
       radius2 = max_of(radius2, set_triangle(t, corner(corners, 0), corner(corners, 1), corner(corners, 2)).radius2);
     }
-    tolerance = relative_tolerance;
-    max_band_widenings = band_widenings;
-    status = kSuccess;
   }
 
   // The tetrahedron `start` (start_tetrahedron, inside the box [lo, hi]):
@@ -452,7 +449,7 @@ struct ConvexCell {
   // 0-5, which no vertex uses.
   TV_HD void init_tetrahedron(Vec3<T> lo, Vec3<T> hi, const StartTetrahedron<T>& start, T relative_tolerance,
                               int band_widenings) {
-    for (int q = 0; q < kBoxPlanes; ++q) box_face[q] = box_plane(q, lo, hi);
+    init_faces_and_settings(lo, hi, relative_tolerance, band_widenings);
     num_planes = kBoxPlanes + 4;
     num_triangles = 4;
     radius2 = T(0);
@@ -462,9 +459,6 @@ struct ConvexCell {
       triangle[t] = {start.vertex[t], start.corners[t] + 0x060606u};
       radius2 = max_of(radius2, squared_norm(start.vertex[t]));
     }
-    tolerance = relative_tolerance;
-    max_band_widenings = band_widenings;
-    status = kSuccess;
   }
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
@@ -564,6 +558,14 @@ struct ConvexCell {
   TV_HD bool fail(int8_t code) {
     status = code;
     return false;
+  }
+
+  // What every start sets: the box's faces (planes 0-5) and the settings.
+  TV_HD void init_faces_and_settings(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
+    for (int q = 0; q < kBoxPlanes; ++q) box_face[q] = box_plane(q, lo, hi);
+    tolerance = relative_tolerance;
+    max_band_widenings = band_widenings;
+    status = kSuccess;
   }
 
   // Marks the vertices more than `threshold` (< 0) outside plane p; returns
