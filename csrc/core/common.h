@@ -93,6 +93,15 @@ TV_HD void set_bits(int32_t* word, int32_t bits) {
 #endif
 }
 
+// ++*word from many threads at once.
+TV_HD void atomic_increment(int32_t* word) {
+#if defined(__CUDA_ARCH__)
+  atomicAdd(word, 1);
+#else
+  __atomic_fetch_add(word, 1, __ATOMIC_RELAXED);
+#endif
+}
+
 // list[(*count)++] = value if `keep`, from many threads at once; the order
 // of the list is not defined. A warp's values go in lane order with one
 // atomic add per warp (not one per value: a pass can fail 700K cells).

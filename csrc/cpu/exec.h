@@ -36,6 +36,12 @@ struct CpuExec {
     return empty_large(sizes, options);
   }
 
+  // The permutation (int32) that sorts `keys` (int32, each below 2^bits)
+  // stably.
+  static at::Tensor stable_order(const at::Tensor& keys, int /*bits*/) {
+    return std::get<1>(at::sort(keys, /*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
+  }
+
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {

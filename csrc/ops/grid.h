@@ -74,7 +74,9 @@ inline void grid_shape(const double extent[3], int64_t count, double points_per_
 
 // Flat cell id (int32) of every point, computed by core::grid_coordinate:
 // the assignment the kNN search assumes, on either backend, in one pass
-// (the tensor-op version took a dozen kernel launches on the GPU).
+// (the tensor-op version took a dozen kernel launches on the GPU). With
+// `counts`, each point also counts itself in the slot after its cell's,
+// whose running sum is then the cells' starts.
 template <typename T>
 struct CellIdFunctor {
   const T* points;          // (N, 3)
@@ -84,6 +86,7 @@ struct CellIdFunctor {
   const int32_t* dims;      // (B, 3)
   const int32_t* cell_offset;  // (B,)
   int32_t* ids;             // (N,)
+  int32_t* counts;          // (num_cells + 1,) zeroed, or nullptr: counts[c + 1] points in cell c
 
   TV_HD void operator()(int64_t i) const {
     const int64_t b = batch ? batch[i] : 0;
@@ -92,22 +95,35 @@ struct CellIdFunctor {
     const int32_t x = core::grid_coordinate(points[3 * i], origin[3 * b], h, dx);
     const int32_t y = core::grid_coordinate(points[3 * i + 1], origin[3 * b + 1], h, dy);
     const int32_t z = core::grid_coordinate(points[3 * i + 2], origin[3 * b + 2], h, dz);
-    ids[i] = cell_offset[b] + (z * dy + y) * dx + x;
+    const int32_t id = cell_offset[b] + (z * dy + y) * dx + x;
+    ids[i] = id;
+    if (counts) core::atomic_increment(counts + id + 1);
   }
 };
 
+// The cell id (N,) int32 of every point; with `counts` ((num_cells + 1,)
+// int32, zeroed), the points of each cell counted in it (CellIdFunctor).
 template <typename Exec>
 at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
-                    const Grid& grid) {
+                    const Grid& grid, const at::Tensor& counts = at::Tensor()) {
   at::Tensor ids = at::empty({points.size(0)}, points.options().dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::cell_ids", [&] {
     const CellIdFunctor<scalar_t> functor{
         points.data_ptr<scalar_t>(), batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
         grid.origin.data_ptr<scalar_t>(), grid.cell_size.data_ptr<scalar_t>(),
-        grid.dims.data_ptr<int32_t>(), grid.cell_offset.data_ptr<int32_t>(), ids.data_ptr<int32_t>()};
+        grid.dims.data_ptr<int32_t>(), grid.cell_offset.data_ptr<int32_t>(), ids.data_ptr<int32_t>(),
+        counts.defined() ? counts.data_ptr<int32_t>() : nullptr};
     Exec::for_each(points.size(0), functor);
   });
   return ids;
+}
+
+// The bits a cell id of a grid of `num_cells` cells uses (what a radix sort
+// by cell must look at).
+inline int cell_id_bits(int64_t num_cells) {
+  int bits = 1;
+  while ((int64_t(1) << bits) < num_cells) ++bits;
+  return bits;
 }
 
 // Per batch element, on the host: the points' bounding box and count, rows
@@ -212,15 +228,15 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   grid.cell_size = region(size_at, num_batches, points.scalar_type());
   grid.dims = region(dims_at, 3 * num_batches, at::kInt).view({num_batches, 3});
   grid.cell_offset = region(offset_at, num_batches, at::kInt);
-  // int32 ids: the radix sort takes half the passes of int64 keys.
-  const at::Tensor ids = cell_ids<Exec>(points, batch, grid);
-  auto sorted = at::sort(ids, /*stable=*/true, /*dim=*/0, /*descending=*/false);
-  const at::Tensor sorted_ids = std::get<0>(sorted);
-  const at::Tensor permutation = std::get<1>(sorted);
+  // The cells' starts from their counts (no search over the sorted ids),
+  // and a stable sort (exact duplicates keep their order) over only the
+  // bits the cell ids use (Exec::stable_order).
+  const at::Tensor counts = at::zeros({total_cells + 1}, points.options().dtype(at::kInt));
+  const at::Tensor ids = cell_ids<Exec>(points, batch, grid, counts);
+  const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells));
   grid.sorted_points = points.index_select(0, permutation).contiguous();
-  grid.sorted_index = permutation.to(at::kInt);
-  grid.cell_start = at::searchsorted(sorted_ids, at::arange(total_cells + 1, sorted_ids.options()),
-                                     /*out_int32=*/true);
+  grid.sorted_index = permutation;
+  grid.cell_start = counts.cumsum(0, at::kInt);
   return grid;
 }
 

@@ -144,7 +144,8 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   const bool queries_are_points = exclude_self && !points_batch.has_value();
   const at::Tensor order = queries_are_points
                                ? grid.sorted_index
-                               : cell_ids<Exec>(queries, queries_batch, grid).argsort().to(at::kInt);
+                               : Exec::stable_order(cell_ids<Exec>(queries, queries_batch, grid),
+                                                    cell_id_bits(grid.cell_start.size(0) - 1));
   const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
     run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), ordered_queries.data_ptr<scalar_t>(),
