@@ -36,6 +36,11 @@ struct CpuExec {
     return empty_large(sizes, options);
   }
 
+  // 0, 1, ..., n - 1 as int32.
+  static at::Tensor iota(int64_t n, const at::TensorOptions& options) {
+    return at::arange(n, options.dtype(at::kInt));
+  }
+
   // The permutation (int32) that sorts `keys` (int32, each below 2^bits)
   // stably.
   static at::Tensor stable_order(const at::Tensor& keys, int /*bits*/) {

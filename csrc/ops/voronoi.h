@@ -373,7 +373,7 @@ CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   Grid grid;
   at::Tensor work_points;  // points by position
   c10::optional<at::Tensor> work_batch;
-  const at::Tensor positions = at::arange(n, points.options().dtype(at::kInt));  // every cell, in grid order
+  const at::Tensor positions = Exec::iota(n, points.options());  // every cell, in grid order
   const auto sort_into_grid = [&](double points_per_cell) {
     const Grid sorted = build_grid<Exec>(points, batch, num_boxes, points_per_cell, bounds);
     out.row_of_position = sorted.sorted_index;
