@@ -65,6 +65,19 @@ def point_set(kind, gen, seed, dtype, device):
     return rand(3000, gen, dtype, device)
 
 
+def near_faces(n, gen, dtype, device):
+    """n uniform points, each pressed against one face of the unit box (within
+    0.02 of it, some near edges and corners), and every tenth exactly on it."""
+    points = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    rows = torch.arange(n)
+    axis = torch.randint(0, 3, (n,), generator=gen)
+    depth = 0.02 * points[rows, axis]
+    depth[::10] = 0.0
+    upper = torch.rand(n, generator=gen) < 0.5
+    points[rows, axis] = torch.where(upper, 1.0 - depth, depth)
+    return points.to(dtype).to(device)
+
+
 def box_of(points, box):
     """(lo, hi) float64 numpy, as torchvor.voronoi interprets `box` (no batch)."""
     if box is None:
@@ -194,10 +207,12 @@ def run(points, box=None, **kwargs):
 # ----------------------------------------------------------- random point sets
 
 
-@pytest.mark.parametrize("kind", ["white", "clustered"])
+@pytest.mark.parametrize("kind", ["white", "clustered", "near_faces"])
 def test_random_vs_oracle(device, dtype, gen, seed, kind, cells_impl):
     if kind == "white":
         points = rand(1000, gen, dtype, device)
+    elif kind == "near_faces":  # seeds near or on the box faces, edges and corners
+        points = torch.cat([rand(300, gen, dtype, device), near_faces(700, gen, dtype, device)])
     else:
         points = samples.clustered(1000, clusters=12, spread=0.03, seed=seed, dtype=torch.float64)
         points = points.to(dtype).to(device)
@@ -230,7 +245,8 @@ def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, s
     assert_same_cells(coop, thread, dtype)
 
 
-@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "perturbed", "duplicates", "batch", "k6"])
+@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "perturbed", "duplicates", "batch", "k6",
+                                  "near_faces"])
 def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, seed, kind):
     """A thread cell starts from the tetrahedron of four of its first
     neighbours' bisectors where they surround the seed inside the box, else
@@ -238,14 +254,17 @@ def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, se
     always start from the box). TORCHVOR_CELL_START=box forces the box: the
     same cells, up to rounding, with the same statuses and neighbour counts.
     On white noise some volumes differ in their last bits: the tetrahedra
-    were used. Lattices (flat first neighbours), points near the box,
-    duplicates, batches and k < 7 (no tetrahedron) take the box too."""
+    were used. Lattices (flat first neighbours), most seeds near the box
+    (near_faces: pressed against the faces, or on them), duplicates, batches
+    and k < 7 (no tetrahedron) take the box."""
     monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, on either device
     batch, box, k = None, UNIT, 6 if kind == "k6" else None
     if kind == "batch":
         batch = ragged_batch([1500, 0, 2, 900], device)
         points = rand(2402, gen, dtype, device)
         box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 4, dtype=dtype, device=device)
+    elif kind == "near_faces":
+        points = torch.cat([rand(1000, gen, dtype, device), near_faces(2000, gen, dtype, device)])
     else:
         points = point_set(kind, gen, seed, dtype, device)
     results = {}
