@@ -16,6 +16,14 @@ TORCH_LIBRARY(torchvor, m) {
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=268435456) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors)");
+  // The same cells in the op's grid order (cells of nearby points in nearby
+  // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
+  // skips the scattered gather to the caller's rows; torchvor.lloyd keeps its
+  // points in this order, so that the next call's order is nearly the identity.
+  m.def(
+      "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
+      "int memory_budget=268435456) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "Tensor status, Tensor neighbors, Tensor order)");
 }
 
 // `import torchvor._C` loads this library, which runs the registrations above.

@@ -11,6 +11,7 @@ import torchvor
 from torchvor import samples
 from torchvor.cvt import _cvt_energy_op, cvt_energy
 from torchvor.lloyd import FIRST_K, LloydStep, lloyd
+from torchvor.ops import _voronoi_in_grid_order
 from torchvor.nn import LloydRelaxation
 
 UNIT_BOX = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
@@ -55,11 +56,13 @@ def test_neighbors_needed_is_the_99th_percentile(device):
 
 
 def test_neighbors_needed_from_a_strided_sample_beyond_the_sample_size(device, monkeypatch):
+    """The sample strides over the cells in lloyd's (grid) order."""
     lloyd_module = sys.modules["torchvor.lloyd"]
     monkeypatch.setattr(lloyd_module, "QUANTILE_SAMPLE", 100)
     points = samples.white_noise(700, seed=6, dtype=torch.float64, device=device)
     _, history = lloyd(points, UNIT_BOX, iters=1, k=20, return_history=True)
-    sample = torch.sort(torchvor.voronoi(points, UNIT_BOX, k=20).neighbors.cpu()[::7]).values
+    cells, _ = _voronoi_in_grid_order(points, unit_box_tensor(device=device), k=20)
+    sample = torch.sort(cells.neighbors.cpu()[::7]).values
     assert history[0].neighbors_needed == int(sample[math.ceil(0.99 * 100) - 1])
 
 
@@ -68,19 +71,20 @@ def test_failed_cell_keeps_its_point(device, monkeypatch):
     torchvor.voronoi leaves it) warns, keeps its point, and makes the energy NaN;
     every other point moves to its centroid."""
     lloyd_module = sys.modules["torchvor.lloyd"]
-    real_voronoi = lloyd_module.voronoi
+    real_voronoi = lloyd_module._voronoi_in_grid_order
 
     def voronoi_with_a_failure(*args, **kwargs):
-        cells = real_voronoi(*args, **kwargs)
+        cells, order = real_voronoi(*args, **kwargs)
+        row = int((order == 7).nonzero())  # the cell of the caller's point 7
         status, volume, centroid, second_moment = (t.clone() for t in (
             cells.status, cells.volume, cells.centroid, cells.second_moment))
-        status[7] = torchvor.CellStatus.BOUNDARY_ERROR
-        volume[7], centroid[7], second_moment[7] = float("nan"), float("nan"), float("nan")
-        return cells._replace(status=status, volume=volume, centroid=centroid, second_moment=second_moment)
+        status[row] = torchvor.CellStatus.BOUNDARY_ERROR
+        volume[row], centroid[row], second_moment[row] = float("nan"), float("nan"), float("nan")
+        return cells._replace(status=status, volume=volume, centroid=centroid, second_moment=second_moment), order
 
     points = samples.white_noise(400, seed=5, dtype=torch.float64, device=device)
     cells = torchvor.voronoi(points, UNIT_BOX)
-    monkeypatch.setattr(lloyd_module, "voronoi", voronoi_with_a_failure)
+    monkeypatch.setattr(lloyd_module, "_voronoi_in_grid_order", voronoi_with_a_failure)
     with pytest.warns(RuntimeWarning, match="1 cell"):
         moved, history = lloyd(points, UNIT_BOX, iters=1, return_history=True)
     assert history[0].failed == 1 and math.isnan(history[0].energy)
@@ -167,6 +171,38 @@ def test_callback_sees_every_iteration_and_can_stop(device):
     _, history = lloyd(points, UNIT_BOX, iters=10, callback=callback, return_history=True)
     assert seen == [(0, (300, 3), (300,)), (1, (300, 3), (300,))]
     assert len(history) == 2 and all(isinstance(step, LloydStep) for step in history)
+
+
+def test_iterations_match_a_loop_of_voronoi_calls(device):
+    """lloyd keeps its points in grid order between iterations and returns them
+    in the caller's: the same points as moving every point to its centroid with
+    torchvor.voronoi, up to rounding (a pair of exactly equidistant neighbours
+    may be clipped in another order). With exact duplicates, the lowest index
+    keeps the cell (the others stay put) in both."""
+    points = samples.white_noise(600, seed=21, dtype=torch.float64, device=device)
+    points[500:520] = points[40:60]
+    expected = points
+    for _ in range(4):
+        expected = torchvor.voronoi(expected, UNIT_BOX, k=16).centroid.clamp(0, 1)
+    torch.testing.assert_close(lloyd(points, UNIT_BOX, iters=4, k=16), expected, rtol=0, atol=1e-12)
+
+
+def test_callback_sees_the_callers_order(device):
+    points = samples.white_noise(400, seed=22, dtype=torch.float64, device=device)
+    seen = []
+
+    def callback(iteration, moved, cells):
+        seen.append((moved.clone(), cells))
+
+    relaxed = lloyd(points, UNIT_BOX, iters=3, k=16, callback=callback)
+    before = points
+    for moved, cells in seen:
+        reference = torchvor.voronoi(before, UNIT_BOX, k=16)
+        for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+            torch.testing.assert_close(getattr(cells, name), getattr(reference, name), rtol=0, atol=1e-13)
+        torch.testing.assert_close(moved, cells.centroid.clamp(0, 1), rtol=0, atol=0)
+        before = moved
+    assert torch.equal(relaxed, seen[-1][0])
 
 
 def test_progress_prints_one_line_per_iteration_to_stderr(capsys):

@@ -20,6 +20,7 @@ from oracles import brute_force_knn, voronoi_cell_oracle
 
 has_cuda = torch.cuda.is_available()
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+VORONOI_FIELDS = ("volume", "centroid", "second_moment", "status", "neighbors")
 
 # tolerances relative to each cell (volume, second moment) or its size (centroid)
 RTOL = {torch.float64: 1e-10, torch.float32: 1e-4}
@@ -995,6 +996,59 @@ def test_opcheck_voronoi(device, dtype, gen):
     batch = ragged_batch([12, 0, 18], device)
     boxes = box.expand(3, 2, 3).contiguous()
     torch.library.opcheck(torch.ops.torchvor.voronoi_cells.default, (points, boxes, batch, 8, 1 << 20))
+
+
+def test_opcheck_voronoi_grid_order(device, dtype, gen):
+    points = rand(30, gen, dtype, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
+    op = torch.ops.torchvor.voronoi_cells_grid_order.default
+    torch.library.opcheck(op, (points, box, None, 40, 1 << 20))
+    torch.library.opcheck(op, (points, box, None, 3, 1))
+    batch = ragged_batch([12, 0, 18], device)
+    torch.library.opcheck(op, (points, box.expand(3, 2, 3).contiguous(), batch, 8, 1 << 20))
+
+
+@pytest.mark.parametrize("k", [3, None])
+def test_grid_order_gives_the_same_cells_in_that_order(device, dtype, gen, k):
+    """torchvor::voronoi_cells_grid_order (torchvor.lloyd's) computes the cells
+    of voronoi_cells, bit for bit, row i for points[order[i]]: order is a
+    permutation, sorted by batch element, that keeps exact duplicates in the
+    caller's order (the lowest index keeps the cell). k=3 retries every cell."""
+    from torchvor.ops import _voronoi_in_grid_order, as_box
+    points = rand(900, gen, dtype, device)
+    points[600:650] = points[100:150]  # exact duplicates, later rows
+    batch = ragged_batch([400, 0, 500], device)
+    for use_batch in (False, True):
+        b = batch if use_batch else None
+        box = as_box(points, None, b)
+        reference = torchvor.voronoi(points, box, batch=b, k=k, on_failure="flag")
+        cells, order = _voronoi_in_grid_order(points, box, b, k)
+        assert order.dtype == torch.int64 and order.device == points.device
+        assert torch.equal(torch.sort(order).values, torch.arange(900, device=device))
+        for name in VORONOI_FIELDS:
+            assert torch.equal(getattr(cells, name), getattr(reference, name)[order]), name
+        if use_batch:
+            assert bool((batch[order].diff() >= 0).all())
+        rank = torch.empty_like(order).index_copy_(0, order, torch.arange(900, device=device))
+        assert bool((rank[100:150] < rank[600:650]).all())
+    cells, order = _voronoi_in_grid_order(points[:0], as_box(points, UNIT))
+    assert order.shape == (0,) and order.dtype == torch.int64 and cells.centroid.shape == (0, 3)
+
+
+def test_compile_voronoi_grid_order(device, dtype, gen):
+    from torchvor.ops import _voronoi_in_grid_order
+    torch._dynamo.reset()
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
+
+    def f(p):
+        cells, order = _voronoi_in_grid_order(p, box)
+        return cells.centroid - p[order], order
+
+    compiled = torch.compile(f, fullgraph=True)
+    for n in (150, 260):
+        points = rand(n, gen, dtype, device)
+        for a, b in zip(compiled(points), f(points)):
+            assert torch.equal(a, b)
 
 
 def test_compile_voronoi(device, dtype, gen):

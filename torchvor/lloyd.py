@@ -11,6 +11,13 @@ iterations, relaxed points small ones. Each iteration measures how many
 neighbours every cell needed and the next one fetches the 99th percentile of
 that plus a small margin, so the few cells that need more are recomputed
 (automatically, by ``voronoi``) instead of all cells fetching too many.
+
+The points are kept in the order of the cell computation's grid (cells of
+nearby points in nearby rows): each iteration gets its cells in that order
+with the permutation (``torchvor.ops._voronoi_in_grid_order``), so neither
+the scattered gather back to the caller's rows nor, from the second
+iteration on, the scattered gather of the points into grid order is paid;
+the caller's order comes back once, at the end.
 """
 from __future__ import annotations
 
@@ -24,7 +31,7 @@ from typing import Callable, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .ops import BoxLike, CellStatus, VoronoiCells, as_box, voronoi
+from .ops import BoxLike, CellStatus, VoronoiCells, _voronoi_in_grid_order, as_box
 
 FIRST_K = 64        # first-pass neighbours of the first iteration (white noise needs ~60-85)
 MIN_K, MAX_K = 8, 256
@@ -122,12 +129,19 @@ def lloyd(
     # (N,) with one, in float64 (read along with the energy, see
     # _move_to_centroids: no device sync before the first iteration).
     diagonal = (upper - lower).to(torch.float64).norm(dim=1).clamp_min(torch.finfo(current.dtype).tiny)
+    # `current` (and the per-point bounds, the batch) in grid order: row i
+    # holds the caller's point row_of[i] (None: the caller's order).
+    row_of: Optional[torch.Tensor] = None
     next_k = FIRST_K if k is None else k
     history: List[LloydStep] = []
     for iteration in range(iters):
         start = time.perf_counter()
-        # "flag": failures are reported below from the same single read.
-        cells = voronoi(current, box_tensor, batch=batch, k=next_k, on_failure="flag")
+        # Failures are flagged, and reported below from the same single read.
+        cells, order = _voronoi_in_grid_order(current, box_tensor, batch, next_k)
+        current = current.index_select(0, order)
+        row_of = order if row_of is None else row_of.index_select(0, order)
+        if batch is not None:  # the grid order sorts by batch element first: still sorted
+            batch, lower, upper, diagonal = (t.index_select(0, order) for t in (batch, lower, upper, diagonal))
         moved, energy, max_displacement, failed, needed = _move_to_centroids(
             current, cells, lower, upper, diagonal)
         if failed:
@@ -148,12 +162,22 @@ def lloyd(
             print(_progress_line(step, iters), file=sys.stderr, flush=True)
         if k is None:
             next_k = _adapted_k(needed)
-        stop_requested = callback is not None and callback(iteration, current, cells) is True
+        # The callback sees the caller's order (two gathers more an iteration, only with a callback).
+        stop_requested = callback is not None and callback(
+            iteration, _to_caller_order(current, row_of),
+            VoronoiCells(*(_to_caller_order(t, row_of) for t in cells))) is True
         if stop_requested or (tol is not None and step.max_displacement < tol):
             break
-    if not history:  # no iteration ran: still return a new tensor
-        current = current.clone()
+    current = current.clone() if row_of is None else _to_caller_order(current, row_of)
     return (current, history) if return_history else current
+
+
+def _to_caller_order(rows: torch.Tensor, row_of: Optional[torch.Tensor]) -> torch.Tensor:
+    """A new tensor with ``rows[i]`` at row ``row_of[i]`` (the caller's order;
+    ``row_of`` None: already in it)."""
+    if row_of is None:
+        return rows.clone()
+    return torch.empty_like(rows).index_copy_(0, row_of, rows)
 
 
 def _check_arguments(points, iters, tol, k) -> None:

@@ -239,6 +239,26 @@ def voronoi(
     return cells
 
 
+def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
+                           k: Optional[int] = None, memory_budget: int = 256 << 20):
+    """The cells of :func:`voronoi` in the op's grid order, for :func:`torchvor.lloyd`.
+
+    ``box`` is a (B, 2, 3) tensor (:func:`as_box`); failed cells are flagged
+    (NaN outputs, a failure status), never raised or warned about.
+
+    Returns:
+        ``(cells, order)``: :class:`VoronoiCells` whose row i is the cell of
+        ``points[order[i]]``, and ``order``, (N,) int64, a permutation that
+        sorts the points by grid cell (stably: points of one cell keep their
+        relative order). A caller that keeps its points in this order gives
+        the next call a nearly sorted input: one Lloyd iteration at 10M blue
+        noise took 40.4-40.6 ms this way against 41.0-41.3 (H100,
+        benchmarks/RESULTS.md).
+    """
+    *outputs, order = torch.ops.torchvor.voronoi_cells_grid_order.default(points, box, batch, k, memory_budget)
+    return VoronoiCells(*outputs), order
+
+
 def _check_tensor(value, name: str) -> None:
     if not isinstance(value, torch.Tensor):
         raise TypeError(f"torchvor: {name} must be a torch.Tensor, got {type(value).__name__}")
@@ -263,3 +283,9 @@ def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=256 << 20
         points.new_empty((n,), dtype=torch.int8),
         points.new_empty((n,), dtype=torch.int32),
     )
+
+
+@torch.library.register_fake("torchvor::voronoi_cells_grid_order")
+def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=256 << 20):
+    n = points.shape[0]
+    return (*_voronoi_cells_fake(points, box, batch, k, memory_budget), points.new_empty((n,), dtype=torch.int64))

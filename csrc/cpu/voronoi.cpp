@@ -9,10 +9,20 @@ namespace cpu {
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
-  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget);
+  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget).cells;
 }
 
-TORCH_LIBRARY_IMPL(torchvor, CPU, m) { m.impl("voronoi_cells", &voronoi_cells_cpu); }
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_grid_order_cpu(
+    const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
+    c10::optional<int64_t> k, int64_t memory_budget) {
+  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true);
+  return std::tuple_cat(out.cells, std::make_tuple(out.order));
+}
+
+TORCH_LIBRARY_IMPL(torchvor, CPU, m) {
+  m.impl("voronoi_cells", &voronoi_cells_cpu);
+  m.impl("voronoi_cells_grid_order", &voronoi_cells_grid_order_cpu);
+}
 
 }  // namespace cpu
 }  // namespace torchvor

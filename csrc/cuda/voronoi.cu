@@ -7,17 +7,33 @@
 namespace torchvor {
 namespace cuda {
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(
-    const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
-    c10::optional<int64_t> k, int64_t memory_budget) {
+ops::VoronoiOutputs voronoi_forward_cuda(const at::Tensor& points, const at::Tensor& box,
+                                         const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                                         int64_t memory_budget, bool grid_order) {
   // Any CUDA argument routes the call here; a CPU `points` then fails the
   // device check with a clear message instead of a guard error.
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget);
+  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order);
 }
 
-TORCH_LIBRARY_IMPL(torchvor, CUDA, m) { m.impl("voronoi_cells", &voronoi_cells_cuda); }
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(
+    const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
+    c10::optional<int64_t> k, int64_t memory_budget) {
+  return voronoi_forward_cuda(points, box, batch, k, memory_budget, false).cells;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_grid_order_cuda(
+    const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
+    c10::optional<int64_t> k, int64_t memory_budget) {
+  const ops::VoronoiOutputs out = voronoi_forward_cuda(points, box, batch, k, memory_budget, true);
+  return std::tuple_cat(out.cells, std::make_tuple(out.order));
+}
+
+TORCH_LIBRARY_IMPL(torchvor, CUDA, m) {
+  m.impl("voronoi_cells", &voronoi_cells_cuda);
+  m.impl("voronoi_cells_grid_order", &voronoi_cells_grid_order_cuda);
+}
 
 }  // namespace cuda
 }  // namespace torchvor

@@ -176,9 +176,10 @@ struct InvertOrderFunctor {
 // 0.29 for InvertOrderFunctor, which scatters a single int32 array
 // (ab_compare.sh). Writing the caller's rows from the clip kernel itself
 // slowed it (scattered stores: clip kernel 7.81 -> 8.45 ms at 1M blue, H100).
+// Without `position_of_row`, row p is position p (outputs in grid order).
 template <typename io_t>
 struct ToRowsFunctor {
-  const int32_t* position_of_row;
+  const int32_t* position_of_row;  // (N,), or nullptr: the identity
   const CellRecord<io_t>* records;
   io_t* volume;         // (N,)
   io_t* centroid;       // (N, 3)
@@ -187,7 +188,7 @@ struct ToRowsFunctor {
   int32_t* num_neighbors;  // (N,)
 
   TV_HD void operator()(int64_t row) const {
-    const CellRecord<io_t> record = records[position_of_row[row]];
+    const CellRecord<io_t> record = records[position_of_row ? position_of_row[row] : row];
     volume[row] = record.volume;
     centroid[3 * row] = record.centroid[0];
     centroid[3 * row + 1] = record.centroid[1];
@@ -200,26 +201,44 @@ struct ToRowsFunctor {
 
 using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 
-// (volume, centroid, second_moment, status, num_neighbors) in the caller's
-// rows, from the records by position.
+// What the ops return: the five outputs (volume, centroid, second_moment,
+// status, num_neighbors), in the caller's rows, or (grid_order) by grid
+// position with `order`, (N,) int64, the caller's row of each position.
+struct VoronoiOutputs {
+  CallerOutputs cells;
+  at::Tensor order;  // undefined unless grid_order
+};
+
+// The five outputs from the records by position: in the caller's rows, or
+// in grid order with the order (torchvor::voronoi_cells_grid_order, which
+// saves the inverse order and the scattered gather: Lloyd keeps its points
+// in grid order, and then the next call's grid order is nearly the identity).
 template <typename Exec, typename io_t>
-CallerOutputs to_caller_rows(const PositionOutputs& in, const at::TensorOptions& options) {
+VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions& options, bool grid_order) {
   const int64_t n = in.records.size(0);
   const at::Tensor volume = Exec::empty({n}, options);
   const at::Tensor centroid = Exec::empty({n, 3}, options);
   const at::Tensor second_moment = Exec::empty({n}, options);
   const at::Tensor status = Exec::empty({n}, options.dtype(at::kChar));
   const at::Tensor num_neighbors = Exec::empty({n}, options.dtype(at::kInt));
+  VoronoiOutputs out;
+  if (grid_order) {
+    out.order = n > 0 ? in.row_of_position.to(at::kLong) : Exec::empty({0}, options.dtype(at::kLong));
+  }
   if (n > 0) {
-    const at::Tensor position_of_row = Exec::empty({n}, options.dtype(at::kInt));
-    Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(),
-                                         position_of_row.data_ptr<int32_t>()});
-    Exec::for_each(n, ToRowsFunctor<io_t>{position_of_row.data_ptr<int32_t>(), in.data<io_t>(),
-                                          volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),
+    at::Tensor position_of_row;
+    if (!grid_order) {
+      position_of_row = Exec::empty({n}, options.dtype(at::kInt));
+      Exec::for_each(n, InvertOrderFunctor{in.row_of_position.data_ptr<int32_t>(),
+                                           position_of_row.data_ptr<int32_t>()});
+    }
+    Exec::for_each(n, ToRowsFunctor<io_t>{grid_order ? nullptr : position_of_row.data_ptr<int32_t>(),
+                                          in.data<io_t>(), volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),
                                           second_moment.data_ptr<io_t>(), status.data_ptr<int8_t>(),
                                           num_neighbors.data_ptr<int32_t>()});
   }
-  return {volume, centroid, second_moment, status, num_neighbors};
+  out.cells = {volume, centroid, second_moment, status, num_neighbors};
+  return out;
 }
 
 template <typename Exec, typename io_t>
@@ -350,13 +369,13 @@ int64_t pilot_k(const at::Tensor& positions, int64_t largest_cloud, const Run& r
 // The passes of voronoi_forward on checked inputs; `bounds` is point_bounds()
 // of the points, already read.
 template <typename Exec, typename io_t>
-CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
-                             const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
-                             c10::optional<int64_t> k_in, int64_t memory_budget) {
+VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
+                              const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
+                              c10::optional<int64_t> k_in, int64_t memory_budget, bool grid_order) {
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);
   PositionOutputs out = poisoned_outputs<Exec, io_t>(n, points.options());
-  if (n == 0) return to_caller_rows<Exec, io_t>(out, points.options());
+  if (n == 0) return finish_outputs<Exec, io_t>(out, points.options(), grid_order);
   // The largest batch element bounds the useful k: a query that asks for as
   // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
   int64_t largest_cloud = 0;  // from the counts already read with the bounds
@@ -436,13 +455,14 @@ CallerOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     if (next == pass) break;  // nothing left to raise
     pass = next;
   }
-  return to_caller_rows<Exec, io_t>(out, points.options());
+  return finish_outputs<Exec, io_t>(out, points.options(), grid_order);
 }
 
+// torchvor::voronoi_cells, or with `grid_order` torchvor::voronoi_cells_grid_order.
 template <typename Exec>
-CallerOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
-                              const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
-                              int64_t memory_budget) {
+VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
+                               const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
+                               int64_t memory_budget, bool grid_order = false) {
   check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
   const int64_t num_boxes = box_in.size(0);
   const at::Tensor points = points_in.contiguous();
@@ -461,9 +481,9 @@ CallerOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box
   const at::Tensor bounds = point_bounds(points, batch, num_boxes, to_read, &read);
   values.verify(read.data());
   check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
-  CallerOutputs result;
+  VoronoiOutputs result;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
-    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, k_in, memory_budget);
+    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, k_in, memory_budget, grid_order);
   });
   return result;
 }
