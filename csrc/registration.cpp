@@ -24,6 +24,14 @@ TORCH_LIBRARY(torchvor, m) {
       "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=268435456) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors, Tensor order)");
+  // One Lloyd move of points (N, 3) whose cells came in grid order: row i of
+  // centroid (N, 3) and status (N,) int8 is the cell of points[order[i]]
+  // (order (N,) int64). moved (N, 3): the centroid clamped to [lower, upper]
+  // ((1, 3) or (N, 3) by row), or the point where the cell failed;
+  // displacement2 (N,): |moved - point|^2.
+  m.def(
+      "lloyd_move(Tensor points, Tensor order, Tensor centroid, Tensor status, Tensor lower, Tensor upper) "
+      "-> (Tensor moved, Tensor displacement2)");
 }
 
 // `import torchvor._C` loads this library, which runs the registrations above.

@@ -205,6 +205,76 @@ def test_callback_sees_the_callers_order(device):
     assert torch.equal(relaxed, seen[-1][0])
 
 
+# ---- lloyd_move (one move of points whose cells came in grid order) ------------------------
+
+
+def lloyd_move_inputs(device, dtype, n=50, per_row_bounds=False, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    points = torch.rand(n, 3, generator=gen, dtype=torch.float64).to(dtype).to(device)
+    order = torch.randperm(n, generator=gen).to(device)
+    centroid = (torch.rand(n, 3, generator=gen, dtype=torch.float64) * 1.2 - 0.1).to(dtype).to(device)
+    status = torch.zeros(n, dtype=torch.int8)
+    status[3], status[4], status[5] = (int(torchvor.CellStatus.BOUNDARY_ERROR), int(torchvor.CellStatus.DUPLICATE),
+                                       int(torchvor.CellStatus.NOT_COMPUTED))
+    centroid[3] = centroid[5] = float("nan")
+    bounds = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], dtype=dtype)
+    lower, upper = bounds[:1].to(device), bounds[1:].to(device)
+    if per_row_bounds:
+        lower = (lower - torch.rand(n, 1, generator=gen).to(dtype).to(device) * 0.05).contiguous()
+        upper = upper.expand(n, 3).contiguous()
+    return points, order, centroid, status.to(device), lower, upper
+
+
+@pytest.mark.parametrize("per_row_bounds", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_lloyd_move_against_tensor_ops(device, dtype, per_row_bounds):
+    """Row i: the centroid clamped into the box, or (failed cell: not SUCCESS
+    or DUPLICATE) the point order[i] it belongs to; and |moved - point|^2."""
+    points, order, centroid, status, lower, upper = lloyd_move_inputs(device, dtype, per_row_bounds=per_row_bounds)
+    moved, displacement2 = torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper)
+    point = points[order]
+    stays = ((status != 0) & (status != int(torchvor.CellStatus.DUPLICATE))).unsqueeze(1)
+    expected = torch.where(stays, point, centroid.clamp(lower, upper))
+    assert torch.equal(moved, expected)
+    torch.testing.assert_close(displacement2, (expected - point).square().sum(1), rtol=1e-6, atol=0)
+    assert bool((displacement2[stays.squeeze(1)] == 0).all())
+
+
+def test_lloyd_move_opcheck(device):
+    for dtype in (torch.float32, torch.float64):
+        for per_row_bounds in (False, True):
+            args = lloyd_move_inputs(device, dtype, n=20, per_row_bounds=per_row_bounds)
+            torch.library.opcheck(torch.ops.torchvor.lloyd_move.default, args)
+    empty = torch.empty(0, 3, device=device)
+    torch.library.opcheck(torch.ops.torchvor.lloyd_move.default,
+                          (empty, torch.empty(0, dtype=torch.int64, device=device), empty,
+                           torch.empty(0, dtype=torch.int8, device=device), torch.zeros(1, 3, device=device),
+                           torch.ones(1, 3, device=device)))
+
+
+def test_lloyd_move_bad_inputs(device):
+    points, order, centroid, status, lower, upper = lloyd_move_inputs(device, torch.float32, n=10)
+    move = torch.ops.torchvor.lloyd_move
+    with pytest.raises(ValueError, match="centroid must have shape"):
+        move(points, order, centroid[:9], status, lower, upper)
+    with pytest.raises(TypeError, match="order must be int64"):
+        move(points, order.int(), centroid, status, lower, upper)
+    with pytest.raises(TypeError, match="status must be int8"):
+        move(points, order, centroid, status.int(), lower, upper)
+    with pytest.raises(TypeError, match="dtype of points"):
+        move(points, order, centroid.double(), status, lower, upper)
+    with pytest.raises(ValueError, match="upper must have shape"):
+        move(points, order, centroid, status, lower, upper[:, :2])
+    with pytest.raises(ValueError, match="lower and upper"):
+        move(points, order, centroid, status, lower.expand(10, 3).contiguous(), upper)
+    # An order that is not a permutation of the rows gives NaN rows, never a read out of bounds.
+    bad = order.clone()
+    bad[2], bad[6] = -1, 10
+    moved, displacement2 = move(points, bad, centroid, status, lower, upper)
+    assert bool(moved[[2, 6]].isnan().all() and displacement2[[2, 6]].isnan().all())
+    assert not bool(moved[[0, 1, 7]].isnan().any())
+
+
 def test_progress_prints_one_line_per_iteration_to_stderr(capsys):
     lloyd(samples.white_noise(200, seed=10), UNIT_BOX, iters=3, progress=True)
     captured = capsys.readouterr()

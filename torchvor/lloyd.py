@@ -138,12 +138,11 @@ def lloyd(
         start = time.perf_counter()
         # Failures are flagged, and reported below from the same single read.
         cells, order = _voronoi_in_grid_order(current, box_tensor, batch, next_k)
-        current = current.index_select(0, order)
         row_of = order if row_of is None else row_of.index_select(0, order)
         if batch is not None:  # the grid order sorts by batch element first: still sorted
             batch, lower, upper, diagonal = (t.index_select(0, order) for t in (batch, lower, upper, diagonal))
         moved, energy, max_displacement, failed, needed = _move_to_centroids(
-            current, cells, lower, upper, diagonal)
+            current, order, cells, lower, upper, diagonal)
         if failed:
             warnings.warn(f"torchvor.lloyd: {failed} cell(s) could not be computed in iteration "
                           f"{iteration}; their points stay in place", RuntimeWarning, stacklevel=2)
@@ -203,33 +202,33 @@ def _per_point_bounds(box: torch.Tensor, batch: Optional[torch.Tensor]) -> Tuple
     return lower.index_select(0, batch), upper.index_select(0, batch)
 
 
-def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.Tensor, upper: torch.Tensor,
-                       diagonal: torch.Tensor) -> Tuple[torch.Tensor, float, float, int, int]:
+def _move_to_centroids(current: torch.Tensor, order: torch.Tensor, cells: VoronoiCells, lower: torch.Tensor,
+                       upper: torch.Tensor, diagonal: torch.Tensor) -> Tuple[torch.Tensor, float, float, int, int]:
     """One Lloyd move and what it measured, with one host read:
     (moved points, energy, max displacement / box diagonal, failed cells,
     neighbours needed by K_QUANTILE of the cells).
 
-    The tail of every iteration, so it launches few kernels: on a GPU each
-    one costs more host time than device time (1M points: ~12 launches here
-    instead of ~27). A failed cell has NaN outputs (torchvor.voronoi), which
-    make the energy NaN; only then are the failures located, and their
-    points put back. The energy is summed in float64 (a float32 total blurs
-    the small decrease of late iterations); the quantile comes from a
-    histogram read with the rest (O(N), no sort). One box diagonal (float64,
-    shape (1,)) divides the largest displacement on the host; per-point
-    diagonals (N,) divide the displacements first.
+    ``cells`` and ``order`` come from ``_voronoi_in_grid_order(current)``
+    (row i is the cell of ``current[order[i]]``); the moved points, the
+    bounds and the diagonals are by row. The tail of every iteration, so it
+    launches few kernels: on a GPU each one costs more host time than device
+    time. The move itself is one op (``torchvor::lloyd_move``: the centroid
+    clamped into the box, or the point where its cell failed, and the squared
+    displacement). The energy is summed in float64 (a float32 total blurs the
+    small decrease of late iterations); a failed cell's NaN second moment
+    makes it NaN, and only then are the failures counted. The quantile comes
+    from a histogram read with the rest (O(N), no sort). One box diagonal
+    (float64, shape (1,)) divides the largest displacement on the host;
+    per-point diagonals (N,) divide the displacements first.
     """
     count = current.shape[0]
     if count == 0:
         return current.clone(), 0.0, 0.0, 0, 0
-    # A centroid lies inside its (convex) cell, but rounding to float32 may put
-    # a boundary cell's centroid an ulp outside the box, which the next
-    # voronoi call would reject.
-    moved = cells.centroid.clamp(lower, upper)
-    displacement = torch.linalg.vector_norm(moved - current, dim=1)
+    moved, displacement2 = torch.ops.torchvor.lloyd_move.default(
+        current, order, cells.centroid, cells.status, lower, upper)
     one_diagonal = diagonal.shape[0] == 1
     if not one_diagonal:
-        displacement = displacement / diagonal
+        displacement2 = displacement2 / diagonal.square()
     # The quantile of at most 2 * QUANTILE_SAMPLE cells spread over the input
     # (its standard error is then ~0.05% of the cells): a histogram of 1M
     # counts took 0.1 ms of the GPU, the bins being few and contended.
@@ -240,16 +239,13 @@ def _move_to_centroids(current: torch.Tensor, cells: VoronoiCells, lower: torch.
     bins = 1024
     histogram = torch.histc(sample.to(torch.float64), bins=bins, min=0, max=bins)
     read = torch.cat([cells.second_moment.sum(dtype=torch.float64).view(1),
-                      displacement.max().view(1).to(torch.float64), diagonal[:1], histogram]).cpu().numpy()
-    energy, max_displacement = float(read[0]), float(read[1])
+                      displacement2.max().view(1).to(torch.float64), diagonal[:1], histogram]).cpu().numpy()
+    energy, max_displacement = float(read[0]), math.sqrt(float(read[1]))
     rank = min(sample.shape[0], max(1, math.ceil(K_QUANTILE * sample.shape[0])))
     needed = int(np.searchsorted(np.cumsum(read[3:]), rank))  # first bin whose cumulative count reaches rank
     failed = 0
     if not math.isfinite(energy):
-        failed_cells = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
-        failed = int(failed_cells.sum())
-        moved = torch.where(failed_cells.unsqueeze(1), current, moved)
-        max_displacement = float(displacement.masked_fill(failed_cells, 0).max())
+        failed = int(((cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)).sum())
     if one_diagonal:
         max_displacement /= float(read[2])
     return moved, energy, max_displacement, failed, needed

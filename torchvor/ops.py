@@ -285,6 +285,12 @@ def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=256 << 20
     )
 
 
+@torch.library.register_fake("torchvor::lloyd_move")
+def _lloyd_move_fake(points, order, centroid, status, lower, upper):
+    n = points.shape[0]
+    return points.new_empty((n, 3)), points.new_empty((n,))
+
+
 @torch.library.register_fake("torchvor::voronoi_cells_grid_order")
 def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=256 << 20):
     n = points.shape[0]

@@ -52,5 +52,10 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
 // (grid.h, point_bounds) and the box (B, 2, 3) values.
 void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes);
 
+// Validates the arguments of torchvor::lloyd_move: shapes, dtypes, devices
+// (not the values: `order` out of range gives NaN rows, see LloydMoveFunctor).
+void check_lloyd_move_inputs(const at::Tensor& points, const at::Tensor& order, const at::Tensor& centroid,
+                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper);
+
 }  // namespace ops
 }  // namespace torchvor
