@@ -43,9 +43,12 @@ struct alignas(16) CellRecord {
 
 // The outputs by grid position (the numbering the passes work in): one
 // CellRecord<io_t> a position, in a byte tensor, and the caller's row of
-// each position.
+// each position. The statuses are also kept apart, a byte a cell: the scan
+// after a pass reads them there (a record is a 32-byte sector; the scan of
+// the records took 169 us of a 10M call on an H100).
 struct PositionOutputs {
   at::Tensor records;          // (N, sizeof(CellRecord<io_t>)) uint8
+  at::Tensor status;           // (N,) int8, the records' statuses again
   at::Tensor row_of_position;  // (N,) int32
 
   template <typename io_t>
@@ -83,6 +86,7 @@ struct ClipFunctor {
   bool tetrahedron_start;      // core::compute_cell: from a tetrahedron where one fits (false: the box)
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
+  int8_t* status;              // (N,) by position: the records' statuses again
 
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
@@ -114,21 +118,21 @@ struct ClipFunctor {
                   {static_cast<io_t>(out.centroid.x), static_cast<io_t>(out.centroid.y),
                    static_cast<io_t>(out.centroid.z)},
                   static_cast<io_t>(out.second_moment), out.neighbors, out.status};
+    status[i] = out.status;
   }
 };
 
 // After a pass, in one kernel: which status codes its cells got (bit
 // code - kNotComputed of words[0]) and the list of the cells that failed
 // (words[1] of them); the host reads the two words in one copy.
-template <typename io_t>
 struct StatusScanFunctor {
-  const CellRecord<io_t>* records;  // by position
+  const int8_t* status;   // (N,) by position
   const int32_t* cells;   // the pass's positions
   int32_t* failed_cells;  // (cells,) the failed ones (not SUCCESS or DUPLICATE), in no set order
   int32_t* words;         // two words, zeroed
 
   TV_HD void operator()(int64_t i) const {
-    const int8_t code = records[cells[i]].status;
+    const int8_t code = status[cells[i]];
     core::set_bits(words, int32_t(1) << (code - core::kNotComputed));
     core::append_if(code != core::kSuccess && code != core::kDuplicate, cells[i], failed_cells, words + 1);
   }
@@ -152,11 +156,13 @@ struct PassSettings {
 template <typename io_t>
 struct PoisonFunctor {
   CellRecord<io_t>* records;
+  int8_t* status;
 
   TV_HD void operator()(int64_t i) const {
     const io_t zero = io_t(0);
     const io_t nan = zero / zero;
     records[i] = {nan, {nan, nan, nan}, nan, 0, core::kNotComputed};
+    status[i] = core::kNotComputed;
   }
 };
 
@@ -245,7 +251,8 @@ template <typename Exec, typename io_t>
 PositionOutputs poisoned_outputs(int64_t n, const at::TensorOptions& options) {
   PositionOutputs out;
   out.records = empty_records<io_t>(n, options);
-  Exec::for_each(n, PoisonFunctor<io_t>{out.data<io_t>()});
+  out.status = at::empty({n}, options.dtype(at::kChar));
+  Exec::for_each(n, PoisonFunctor<io_t>{out.data<io_t>(), out.status.data_ptr<int8_t>()});
   return out;
 }
 
@@ -269,7 +276,8 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
       T(core::ClipTolerance<T>::value),
       band_widenings,                 tetrahedron_start(),
-      rows_by_step,                   out.data<io_t>()};
+      rows_by_step,                   out.data<io_t>(),
+      out.status.data_ptr<int8_t>()};
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size and k, and
   // TORCHVOR_CELLS=thread|cooperative overrides it (use_cooperative).
@@ -309,11 +317,13 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
       batch.has_value() ? c10::optional<at::Tensor>(cpu(*batch)) : c10::nullopt;
   PositionOutputs part;
   part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
+  part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
       cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
       /*band_widenings=*/6, /*rows_by_step=*/true, part);
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
+  out.status.index_copy_(0, rows, part.status.to(out.status.device()));
 }
 
 // One pass over `cells` (int32 point ids), in chunks of bounded memory.
@@ -430,7 +440,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
     const at::Tensor words = at::zeros({2}, pending.options());
     Exec::for_each(pending.size(0),
-                   StatusScanFunctor<io_t>{out.data<io_t>(), pending.data_ptr<int32_t>(),
+                   StatusScanFunctor{out.status.data_ptr<int8_t>(), pending.data_ptr<int32_t>(),
                                            failed_cells.data_ptr<int32_t>(), words.data_ptr<int32_t>()});
     const at::Tensor read = words.to(at::kCPU);
     const int32_t seen_bits = read.data_ptr<int32_t>()[0];
