@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|lanes|crossk|bluek|density|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|bluek|density|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -21,15 +21,19 @@ for step in "${@:-smoke}"; do
   case "$step" in
     smoke) python3 benchmarks/gpu_smoke.py --sizes 100000,1000000,10000000 2>&1 | tee "$OUT/smoke.log" || status=1 ;;
     tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -15 || status=1 ;;
-    cudatests) python3 -m pytest -q -p no:cacheprovider -k cuda tests 2>&1 | tee "$OUT/cudatests.log" | grep -E "passed|failed|Error|assert" | tail -30 || status=1 ;;
-    lanes)  # thread or warp per item, one build: crossover tables (TORCHVOR_CELLS, TORCHVOR_KNN),
-            # then ROUNDS rounds of ab_time.py under each setting of AB ("default" = no variable)
-      python3 benchmarks/crossover.py 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
+    cudatests)  # CUDA_TESTS_K narrows them (a pytest -k expression, and-ed with "cuda")
+      python3 -m pytest -q -p no:cacheprovider -k "cuda${CUDA_TESTS_K:+ and ($CUDA_TESTS_K)}" tests 2>&1 \
+        | tee "$OUT/cudatests.log" | grep -E "passed|failed|Error|assert" | tail -30 || status=1 ;;
+    ab|lanes)  # one build under several settings: ROUNDS rounds of ab_time.py under each environment
+               # setting of AB ("default" = no variable); lanes first prints the thread/warp crossover tables
+      if [ "$step" = lanes ]; then
+        python3 benchmarks/crossover.py 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
+      fi
       for round in $(seq ${ROUNDS:-2}); do
         for setting in ${AB:-default TORCHVOR_KNN=thread}; do
           if [ "$setting" = default ]; then assign=(); else assign=("$setting"); fi
           env "${assign[@]}" python3 benchmarks/ab_time.py "$setting" 2>&1 \
-            | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/lanes.log"
+            | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/$step.log"
         done
       done ;;
     crossk)  # whole voronoi calls at 1M, thread against warp cells, per kind and first-pass k
