@@ -47,7 +47,7 @@ def kernels(fn):
     out = {}
     for e in prof.key_averages():
         for name in ("FaceClipFunctor", "ClipFunctor", "KnnFunctor", "ToRowsFunctor"):
-            if name in e.key:  # FaceClipFunctor's kernels apart from the other cells'
+            if name in e.key:  # face cells' kernels (branch experiment/face-cells) apart
                 out[name] = round(out.get(name, 0.0) + e.device_time_total / 1e3, 3)
                 break
     return out
