@@ -46,10 +46,9 @@ def kernels(fn):
         torch.cuda.synchronize()
     out = {}
     for e in prof.key_averages():
-        for name in ("FaceClipFunctor", "ClipFunctor", "KnnFunctor", "ToRowsFunctor"):
-            if name in e.key:  # face cells' kernels (branch experiment/face-cells) apart
+        for name in ("ClipFunctor", "KnnFunctor", "ToRowsFunctor"):
+            if name in e.key:
                 out[name] = round(out.get(name, 0.0) + e.device_time_total / 1e3, 3)
-                break
     return out
 
 

@@ -33,7 +33,7 @@ for step in "${@:-smoke}"; do
         for setting in ${AB:-default TORCHVOR_KNN=thread}; do
           if [ "$setting" = default ]; then assign=(); else assign=("$setting"); fi
           env "${assign[@]}" python3 benchmarks/ab_time.py "$setting" 2>&1 \
-            | grep -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/$step.log"
+            | grep --line-buffered -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/$step.log"
         done
       done ;;
     crossk)  # whole voronoi calls at 1M, thread against warp cells, per kind and first-pass k
