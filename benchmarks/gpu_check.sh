@@ -27,7 +27,7 @@ for step in "${@:-smoke}"; do
     ab|lanes)  # one build under several settings: ROUNDS rounds of ab_time.py under each environment
                # setting of AB ("default" = no variable); lanes first prints the thread/warp crossover tables
       if [ "$step" = lanes ]; then
-        python3 benchmarks/crossover.py 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
+        python3 benchmarks/crossover.py 2>&1 | grep --line-buffered -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossover.log"
       fi
       for round in $(seq ${ROUNDS:-2}); do
         for setting in ${AB:-default TORCHVOR_KNN=thread}; do
