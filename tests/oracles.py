@@ -2,7 +2,8 @@
 
 Nothing here calls torchvor: the kNN oracle is brute force in float64 (numpy),
 and the Voronoi oracle intersects half-spaces with scipy/Qhull, cell by cell,
-using the bisectors of *all* other points plus the six box planes.
+using the bisectors of *all* other points plus the six box planes; single
+cells can also be computed in exact rational arithmetic (exact_cell_oracle).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ __all__ = [
     "CellOracle",
     "voronoi_cell_oracle",
     "voronoi_oracle",
+    "exact_cell_oracle",
 ]
 
 
@@ -378,3 +380,130 @@ def voronoi_oracle(points, box, cells: Optional[Sequence[int]] = None):
     out = [voronoi_cell_oracle(pts, int(i), box) for i in cells]
     return (np.array([c.volume for c in out]), np.array([c.centroid for c in out]).reshape(-1, 3),
             np.array([c.second_moment for c in out]), np.array([c.duplicate for c in out], dtype=bool))
+
+
+# ----------------------------------------------------------------------------- exact cells
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _solve3(planes):
+    """The point where three planes (n, c) with n . x = c meet, exactly, or None."""
+    (n0, c0), (n1, c1), (n2, c2) = planes
+    n12, n20, n01 = _cross(n1, n2), _cross(n2, n0), _cross(n0, n1)
+    det = _dot(n0, n12)
+    if det == 0:
+        return None
+    return tuple((c0 * n12[a] + c1 * n20[a] + c2 * n01[a]) / det for a in range(3))
+
+
+def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] = None) -> CellOracle:
+    """Voronoi cell of points[i] clipped to box = (lo, hi) in exact rational
+    arithmetic (Fractions over the float64 inputs): for cells whose vertices
+    nearly coincide (bisectors of tight clusters), where Qhull's vertices and
+    their merging are off by more than float64 rounding.
+
+    The cell is first built from the half-spaces of `candidates` (point indices;
+    default: Qhull's facet neighbours, voronoi_cell_oracle) and the box, every
+    vertex from a triple of planes checked against all of them; then each
+    vertex is checked against the bisectors of all points, and a violated one
+    joins the candidates until none is (then the cell is exact: the candidate
+    cell contains the true one and lies inside every half-space). Integrals
+    over the fans of the faces from the seed (as tetrahedron_integrals).
+    Slow (seconds a cell): for single cells of regression tests. Exact
+    duplicates are not handled here (use voronoi_cell_oracle).
+    """
+    from fractions import Fraction
+    from itertools import combinations
+
+    pts = _np64(points)
+    lo, hi = (_np64(b).reshape(3) for b in box)
+    if candidates is None:
+        candidates = voronoi_cell_oracle(pts, i, (lo, hi)).facet_neighbors.tolist()
+    exact = [tuple(Fraction(float(c)) for c in p) for p in pts]
+    seed = exact[i]
+    rel = [tuple(q[a] - seed[a] for a in range(3)) for q in exact]
+
+    def bisector(j):  # x . r <= |r|^2 / 2, relative to the seed
+        return (rel[j], _dot(rel[j], rel[j]) / 2)
+
+    box_planes = []
+    for a in range(3):
+        unit = tuple(Fraction(int(a == b)) for b in range(3))
+        box_planes.append((unit, Fraction(float(hi[a])) - seed[a]))            # x_a <= hi_a
+        box_planes.append((tuple(-u for u in unit), seed[a] - Fraction(float(lo[a]))))  # -x_a <= -lo_a
+    chosen = sorted(set(int(j) for j in candidates) - {i})
+    while True:
+        planes = box_planes + [bisector(j) for j in chosen]
+        vertices = {}  # exact vertex -> indices of the planes through it
+        for triple in combinations(range(len(planes)), 3):
+            v = _solve3([planes[t] for t in triple])
+            if v is None or v in vertices:
+                continue
+            if all(_dot(n, v) <= c for n, c in planes):
+                vertices[v] = [t for t, (n, c) in enumerate(planes) if _dot(n, v) == c]
+        violated = set()
+        for v in vertices:
+            for j in range(len(pts)):
+                if j != i and j not in chosen and rel[j] != (0, 0, 0) and _dot(rel[j], v) > _dot(rel[j], rel[j]) / 2:
+                    violated.add(j)
+        if not violated:
+            break
+        chosen = sorted(set(chosen) | violated)
+    # Each face: its vertices in order around it (an exact angular sort in the
+    # face's plane), fanned from the first; tetrahedra with the seed (origin).
+    on_plane = {}
+    for v, through in vertices.items():
+        for t in through:
+            on_plane.setdefault(t, []).append(v)
+    volume = Fraction(0)
+    first = [Fraction(0)] * 3
+    second = Fraction(0)
+    area2_total = 0.0
+    for t, ring in on_plane.items():
+        if len(ring) < 3:
+            continue
+        normal = planes[t][0]
+        axis = min(range(3), key=lambda a: abs(normal[a]))
+        u = _cross(normal, tuple(Fraction(int(a == axis)) for a in range(3)))
+        w = _cross(normal, u)
+        centre = tuple(sum(v[a] for v in ring) / len(ring) for a in range(3))
+        coords = [(_dot(tuple(v[a] - centre[a] for a in range(3)), u),
+                   _dot(tuple(v[a] - centre[a] for a in range(3)), w), v) for v in ring]
+
+        def half(c):  # 0 for angles in [0, pi), 1 for [pi, 2 pi)
+            return 0 if (c[1] > 0 or (c[1] == 0 and c[0] > 0)) else 1
+
+        from functools import cmp_to_key
+
+        def compare(p, q):
+            if half(p) != half(q):
+                return half(p) - half(q)
+            cross = p[0] * q[1] - p[1] * q[0]
+            return -1 if cross > 0 else (1 if cross < 0 else 0)
+
+        ordered = [c[2] for c in sorted(coords, key=cmp_to_key(compare))]
+        a0 = ordered[0]
+        for b, c in zip(ordered[1:-1], ordered[2:]):
+            six = _dot(a0, _cross(b, c))
+            vol = abs(six) / 6
+            volume += vol
+            total = tuple(a0[a] + b[a] + c[a] for a in range(3))
+            for a in range(3):
+                first[a] += vol * total[a] / 4
+            second += vol / 20 * (_dot(a0, a0) + _dot(b, b) + _dot(c, c) + _dot(total, total))
+            e1 = np.array([float(b[a] - a0[a]) for a in range(3)])
+            e2 = np.array([float(c[a] - a0[a]) for a in range(3)])
+            area2_total += float(np.linalg.norm(np.cross(e1, e2)))
+    seed_np = pts[i]
+    verts = np.array([[float(x) for x in v] for v in vertices]) + seed_np
+    centroid = np.array([float(first[a] / volume) for a in range(3)]) + seed_np
+    facets = sorted(chosen[t - 6] for t, ring in on_plane.items() if len(ring) >= 3 and t >= 6)
+    return CellOracle(float(volume), centroid, float(second), verts, np.array(facets, dtype=np.int64),
+                      seed_np.copy(), area=0.5 * area2_total)
