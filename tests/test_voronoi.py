@@ -16,7 +16,7 @@ import torch
 import torchvor
 from torchvor import CellStatus, samples
 
-from oracles import brute_force_knn, voronoi_cell_oracle
+from oracles import brute_force_knn, exact_cell_oracle, voronoi_cell_oracle
 
 has_cuda = torch.cuda.is_available()
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
@@ -472,6 +472,36 @@ def test_needle_cell_exact_float64(device, cells_impl):
     assert cells.volume[59].item() == pytest.approx(1.4992333652678265e-11, rel=1e-12, abs=0)
     assert cells.second_moment[59].item() == pytest.approx(1.8417640051644332e-14, rel=1e-12, abs=0)
     check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
+
+
+def test_float64_cell_at_nearly_concurrent_bisectors(device):
+    """Found by test_tight_clusters (seed 3321684543, spread 1e-5): cell 211, a
+    large cell (volume 0.032, radius 0.76) next to a cluster of 40 points
+    spread over ~1e-5, has 12 vertices where ~10 of the cluster's bisectors
+    nearly meet (the sine of their angle down to 1.3e-10). Exact rational
+    arithmetic (tests/oracles.py, exact_cell_oracle) agrees with the Qhull
+    oracle to 2e-16; torchvor's float64 cell was 8e-11 off in volume and
+    1.6e-10 in second moment (the rtol of the other float64 tests is 1e-10):
+    its vertices there are computed from planes nearly parallel in pairs, and
+    no flag catches that (ILL_CONDITIONED measures the integrals'
+    cancellation, which is low here). Held to 1e-9 here: a known limit, not a
+    goal. The oracles are held to each other at 1e-13."""
+    gen = torch.Generator()
+    gen.manual_seed(3321684543)
+    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    points = centres.repeat_interleave(40, 0) + 1e-5 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
+    points = points.clamp(0, 1)
+    assert points[211].tolist() == [0.3885020495206787, 0.8110196492366557, 0.639860898022586]
+    lohi = box_of(points, UNIT)
+    exact = exact_cell_oracle(points.numpy(), 211, lohi)
+    qhull = voronoi_cell_oracle(points.numpy(), 211, lohi)
+    assert exact.volume == pytest.approx(qhull.volume, rel=1e-13, abs=0)
+    assert exact.second_moment == pytest.approx(qhull.second_moment, rel=1e-13, abs=0)
+    cells = run(points.to(device), UNIT)
+    assert cells.status[211].item() == CellStatus.SUCCESS
+    assert cells.volume[211].item() == pytest.approx(exact.volume, rel=1e-9, abs=0)
+    assert cells.second_moment[211].item() == pytest.approx(exact.second_moment, rel=1e-9, abs=0)
+    np.testing.assert_allclose(cells.centroid[211].cpu().numpy(), exact.centroid, rtol=0, atol=1e-9)
 
 
 def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
