@@ -48,21 +48,37 @@ TV_HD Vec3<T> cross(Vec3<T> a, Vec3<T> b) {
 template <typename T>
 TV_HD Vec3<T> load_vec3(const T* p) { return {p[0], p[1], p[2]}; }
 
-// Squared distance rounded identically on host and device: nvcc would fuse the
-// multiply-adds (FMA) and the host compiler would not, and kNN promises bitwise
-// identical distances (hence identical tie-breaking) on CPU and CUDA.
+// A product rounded on its own, identically on host and device and at every
+// call site: nvcc fuses multiply-adds (FMA) unless told not to, and so does
+// GCC (-ffp-contract=fast) in code compiled for FMA, such as the CPU's AVX2
+// copy of the clip loop (cpu/isa.h), each site its own way. kNN promises
+// bitwise identical distances (hence identical tie-breaking) on CPU and
+// CUDA, and a thread cell that extends its neighbour list searches inside
+// that loop for the neighbours after one the kNN ranked: a distance fused
+// there put a neighbour back in the list (benchmarks/NOTES.md). On the host
+// an empty asm that takes the product in a register keeps it from being
+// fused into an addition.
+template <typename F>
+TV_HD F held_product(F product) {
+#if !defined(__CUDA_ARCH__) && (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)
+  __asm__("" : "+x"(product));
+#elif !defined(__CUDA_ARCH__) && defined(__aarch64__) && defined(__GNUC__)
+  __asm__("" : "+w"(product));
+#endif
+  return product;
+}
 TV_HD float mul_rn(float a, float b) {
 #if defined(__CUDA_ARCH__)
   return __fmul_rn(a, b);
 #else
-  return a * b;
+  return held_product(a * b);
 #endif
 }
 TV_HD double mul_rn(double a, double b) {
 #if defined(__CUDA_ARCH__)
   return __dmul_rn(a, b);
 #else
-  return a * b;
+  return held_product(a * b);
 #endif
 }
 template <typename T>  // other scalars (double-double): their own product
