@@ -81,12 +81,12 @@ struct NeighborReader {
 // the grid the list came from (knn_search after that neighbour's key, so
 // the same neighbours in the same order as a longer list), up to kRounds
 // times. Without it such a cell fails, and the host reads the statuses and
-// launches a retry pass with more neighbours for it: on blue noise a few
-// cells in a million, and the pass costs a device round trip and five
-// launches (benchmarks/NOTES.md). A warp cell does not extend (its passes
-// are the irregular inputs', where many cells fail: a retry pass computes
-// them with full warps). kExtra keys are 128 bytes of a float32 thread's
-// frame, touched only by the cells that extend.
+// launches a retry pass that recomputes it with a longer list. The backend
+// chooses (Exec::kExtendNeighborLists): the CPU extends, CUDA does not (one
+// lane's serial search holds its warp back by more than the retry pass
+// costs; benchmarks/NOTES.md). A warp cell never extends. kExtra keys are
+// 128 bytes of a float32 thread's frame, touched only by the cells that
+// extend.
 template <typename io_t>
 struct NeighborExtension {
   static constexpr int32_t kExtra = 16;

@@ -1,8 +1,8 @@
 // torchvor::voronoi_cells, shared by the CPU and CUDA backends.
 //
 // Cells are computed chunk by chunk (kNN into a bounded buffer, then clipping),
-// so no N x k neighbour array ever exists. A thread cell that runs out of
-// neighbours first searches more on the grid (core::NeighborExtension).
+// so no N x k neighbour array ever exists. On the CPU a cell that runs out
+// of neighbours first searches more on the grid (core::NeighborExtension).
 // Failed cells are retried with what
 // their status asks for: more neighbours, larger arrays, or more precision
 // (float64, then double-double on the CPU, where an inconsistent clip may also
@@ -273,11 +273,15 @@ inline bool tetrahedron_start() {
 }
 
 // Whether thread cells may extend their neighbour lists in a pass
-// (core::NeighborExtension), as by default; TORCHVOR_NEIGHBOR_EXTENSION=0
-// turns it off (the tests compare the two; benchmarks time them).
-inline bool neighbor_extension() {
+// (core::NeighborExtension): the backend's choice (Exec::kExtendNeighborLists:
+// the CPU does, CUDA does not), or TORCHVOR_NEIGHBOR_EXTENSION=0 / 1 (the
+// tests compare the two on each device; benchmarks time them).
+template <typename Exec>
+bool neighbor_extension() {
   const char* chosen = std::getenv("TORCHVOR_NEIGHBOR_EXTENSION");
-  return !(chosen != nullptr && std::strcmp(chosen, "0") == 0);
+  if (chosen != nullptr && std::strcmp(chosen, "0") == 0) return false;
+  if (chosen != nullptr && std::strcmp(chosen, "1") == 0) return true;
+  return Exec::kExtendNeighborLists;
 }
 
 // Clips the cells of one chunk. With `grid` (the grid `neighbors` came
@@ -448,7 +452,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
                                    : c10::nullopt;
   };
-  const bool extend = neighbor_extension();
+  const bool extend = neighbor_extension<Exec>();
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass, bool extend_lists) {
     return run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, extend_lists, out);
   };

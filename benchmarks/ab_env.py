@@ -1,0 +1,121 @@
+"""Interleaved A/B of environment settings inside one process (GPU machine).
+
+Settings that torchvor reads at every call (TORCHVOR_NEIGHBOR_EXTENSION,
+TORCHVOR_CELLS, TORCHVOR_CELL_START, ...) can be switched between calls, so
+each round times every setting back to back and host drift (which moved
+whole ab_time.py runs by 0.3-0.5 ms at 1M, benchmarks/NOTES.md) hits all of
+them alike. Prints, per call and setting, the median over rounds of the
+call's wall time (CUDA events) and, with --kernels, the clip and kNN kernels
+of one profiled call.
+
+    python benchmarks/ab_env.py "default" "TORCHVOR_NEIGHBOR_EXTENSION=0" [--rounds 15] [--sizes 1M,10M]
+
+Calls: voronoi on blue noise (k=24), one Lloyd iteration on it (k=19, from
+points already in Lloyd's grid order, as in late iterations). Blue noise is
+made by 100 Lloyd iterations on the machine and cached in /tmp.
+"""
+import argparse
+import os
+import statistics
+import time
+
+import torch
+import torchvor
+import torchvor.samples
+from torch.profiler import ProfilerActivity, profile
+from torchvor.ops import _voronoi_in_grid_order, as_box
+
+BOX = ([0, 0, 0], [1, 1, 1])
+SIZES = {"100K": 100_000, "1M": 1_000_000, "10M": 10_000_000}
+DEVICE = "cuda"
+
+
+def blue_noise(n: int, tag: str) -> torch.Tensor:
+    cache = f"/tmp/blue_{tag.lower()}.pt"
+    if not os.path.exists(cache):
+        white = torchvor.samples.white_noise(n, device=DEVICE)
+        torch.save(torchvor.lloyd(white, BOX, iters=100, k=24).cpu(), cache)
+    return torch.load(cache).to(DEVICE)
+
+
+def apply(setting: str) -> None:
+    for name in [v for v in os.environ if v.startswith("TORCHVOR_")]:
+        del os.environ[name]
+    if setting != "default":
+        for part in setting.split(","):
+            name, value = part.split("=", 1)
+            os.environ[name] = value
+
+
+def wall_ms(fn) -> float:
+    if DEVICE == "cpu":
+        begin = time.perf_counter()
+        fn()
+        return 1e3 * (time.perf_counter() - begin)
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    fn()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end)
+
+
+def kernel_ms(fn) -> dict:
+    on_gpu = DEVICE == "cuda"
+    with profile(activities=[ProfilerActivity.CUDA if on_gpu else ProfilerActivity.CPU]) as prof:
+        fn()
+        if on_gpu:
+            torch.cuda.synchronize()
+    out = {}
+    for e in prof.key_averages():
+        for name in ("ClipFunctor", "KnnFunctor"):
+            if name in e.key:
+                spent = e.device_time_total if on_gpu else e.self_cpu_time_total
+                out[name] = round(out.get(name, 0.0) + spent / 1e3, 3)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("settings", nargs="+", help='"default" or NAME=VALUE[,NAME=VALUE]')
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--sizes", default="1M,10M")
+    parser.add_argument("--kernels", action="store_true")
+    parser.add_argument("--device", default="cuda", help="cpu: a dry run of this script (timed by the host clock)")
+    args = parser.parse_args()
+    global DEVICE
+    DEVICE = args.device
+    for tag in args.sizes.split(","):
+        points = blue_noise(SIZES[tag], tag)
+        box = as_box(points, BOX)
+        # Lloyd's late iterations start from points already in grid order.
+        cells, order = _voronoi_in_grid_order(points, box, None, 19)
+        in_grid_order = points.index_select(0, order)
+        calls = {
+            f"voronoi {tag} blue k=24": lambda: torchvor.voronoi(points, BOX, k=24, on_failure="flag"),
+            f"lloyd step {tag} k=19": lambda: torchvor.lloyd(in_grid_order, box, iters=1, k=19),
+        }
+        times = {(call, s): [] for call in calls for s in args.settings}
+        for setting in args.settings:  # warm-up
+            apply(setting)
+            for fn in calls.values():
+                fn()
+        for _ in range(args.rounds):
+            for call, fn in calls.items():
+                for setting in args.settings:
+                    apply(setting)
+                    times[(call, setting)].append(wall_ms(fn))
+        for call, fn in calls.items():
+            for setting in args.settings:
+                apply(setting)
+                values = sorted(times[(call, setting)])
+                line = (f"{call} | {setting} | median {statistics.median(values):.3f} ms | "
+                        f"quartiles {values[len(values) // 4]:.3f}-{values[(3 * len(values)) // 4]:.3f}")
+                if args.kernels:
+                    line += f" | {kernel_ms(fn)}"
+                print(line, flush=True)
+        apply("default")
+
+
+if __name__ == "__main__":
+    main()
