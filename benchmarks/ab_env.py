@@ -1,14 +1,14 @@
 """Interleaved A/B of environment settings inside one process (GPU machine).
 
-Settings that torchvor reads at every call (TORCHVOR_NEIGHBOR_EXTENSION,
-TORCHVOR_CELLS, TORCHVOR_CELL_START, ...) can be switched between calls, so
+Settings that torchvor reads at every call (TORCHVOR_CELLS,
+TORCHVOR_CELL_START, TORCHVOR_CELL_BLOCKS_PER_SM, ...) can be switched between calls, so
 each round times every setting back to back and host drift (which moved
 whole ab_time.py runs by 0.3-0.5 ms at 1M, benchmarks/NOTES.md) hits all of
 them alike. Prints, per call and setting, the median over rounds of the
 call's wall time (CUDA events) and, with --kernels, the clip and kNN kernels
 of one profiled call.
 
-    python benchmarks/ab_env.py "default" "TORCHVOR_NEIGHBOR_EXTENSION=0" [--rounds 15] [--sizes 1M,10M]
+    python benchmarks/ab_env.py "default" "TORCHVOR_CELL_START=box" [--rounds 15] [--sizes 1M,10M] [--kernels]
 
 Calls: voronoi on blue noise (k=24), one Lloyd iteration on it (k=19, from
 points already in Lloyd's grid order, as in late iterations). Blue noise is

@@ -82,9 +82,9 @@ struct NeighborReader {
 // the same neighbours in the same order as a longer list), up to kRounds
 // times. Without it such a cell fails, and the host reads the statuses and
 // launches a retry pass that recomputes it with a longer list. The backend
-// chooses (Exec::kExtendNeighborLists): the CPU extends, CUDA does not (one
-// lane's serial search holds its warp back by more than the retry pass
-// costs; benchmarks/NOTES.md). A warp cell never extends. kExtra keys are
+// chooses (Exec::kExtendNeighborLists): the CPU extends, CUDA kernels are
+// built without it (one lane's serial search holds its warp back by more
+// than the retry pass costs; benchmarks/NOTES.md). A warp cell never extends. kExtra keys are
 // 128 bytes of a float32 thread's frame, touched only by the cells that
 // extend.
 template <typename io_t>

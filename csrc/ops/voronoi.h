@@ -73,7 +73,10 @@ at::Tensor empty_records(int64_t n, const at::TensorOptions& options) {
 }
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
-template <typename io_t, typename T, int MAX_PLANES>
+// EXTENDS: the kernel is built with core::NeighborExtension
+// (Exec::kExtendNeighborLists); without it the extension's code is not in
+// the kernel at all.
+template <typename io_t, typename T, int MAX_PLANES, bool EXTENDS>
 struct ClipFunctor {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
   using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
@@ -98,7 +101,7 @@ struct ClipFunctor {
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
     core::ConvexCell<T, MAX_PLANES, kMaxTriangles> cell;
-    write(t, compute(cell, t, extend_neighbors));
+    write(t, compute(cell, t, EXTENDS && extend_neighbors));
   }
 
   // A group of lanes computes cell t together, its arrays in `arrays`.
@@ -272,16 +275,14 @@ inline bool tetrahedron_start() {
   return !(forced != nullptr && std::strcmp(forced, "box") == 0);
 }
 
-// Whether thread cells may extend their neighbour lists in a pass
-// (core::NeighborExtension): the backend's choice (Exec::kExtendNeighborLists:
-// the CPU does, CUDA does not), or TORCHVOR_NEIGHBOR_EXTENSION=0 / 1 (the
-// tests compare the two on each device; benchmarks time them).
+// Whether thread cells extend their neighbour lists in a pass
+// (core::NeighborExtension): where the backend builds them so
+// (Exec::kExtendNeighborLists: the CPU), unless TORCHVOR_NEIGHBOR_EXTENSION=0
+// (the tests compare the two; benchmarks time them).
 template <typename Exec>
 bool neighbor_extension() {
   const char* chosen = std::getenv("TORCHVOR_NEIGHBOR_EXTENSION");
-  if (chosen != nullptr && std::strcmp(chosen, "0") == 0) return false;
-  if (chosen != nullptr && std::strcmp(chosen, "1") == 0) return true;
-  return Exec::kExtendNeighborLists;
+  return Exec::kExtendNeighborLists && !(chosen != nullptr && std::strcmp(chosen, "0") == 0);
 }
 
 // Clips the cells of one chunk. With `grid` (the grid `neighbors` came
@@ -293,7 +294,8 @@ bool clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
                 bool rows_by_step, const Grid* grid, PositionOutputs& out) {
-  ClipFunctor<io_t, T, MAX_PLANES> functor{
+  using Functor = ClipFunctor<io_t, T, MAX_PLANES, Exec::kExtendNeighborLists>;
+  Functor functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
       cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
@@ -313,8 +315,7 @@ bool clip_chunk(const at::Tensor& points, const at::Tensor& box,
     Exec::for_each(cells.size(0), functor);
     return grid != nullptr;
   } else if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1)))) {
-    Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
-                                                                                          functor);
+    Exec::template for_each_cooperative<typename Functor::Arrays>(cells.size(0), functor);
     return false;
   } else {
     Exec::for_each_cell(cells.size(0), functor);
