@@ -280,42 +280,6 @@ def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, se
         assert not torch.equal(from_box.volume, from_tetrahedron.volume)
 
 
-@pytest.mark.parametrize("kind", ["white", "lattice", "duplicates", "batch"])
-def test_neighbor_extension_matches_retry_passes(monkeypatch, device, dtype, gen, seed, kind):
-    """On the CPU a thread cell that uses up its k neighbours searches the
-    next ones on the grid itself (csrc/core/voronoi_cell.h, NeighborExtension:
-    up to 2 x 16 more) instead of failing into a retry pass with a longer
-    list. Either way it clips the same neighbours in the same order: the same
-    cells, bit for bit, the same statuses and neighbour counts. (CUDA kernels
-    are built without it: csrc/cuda/exec.cuh says why.) k=8 makes nearly every
-    cell extend, and on white noise some need more than 8 + 32 (a retry pass
-    after the extensions). A cloud of 2 points runs out of points inside an
-    extension. (Not on clustered sets: there the passes differ in which
-    cells they send to float64 alongside others, and a cell computed in
-    another precision may reach its radius of security one neighbour apart.)"""
-    if device.type == "cuda":
-        pytest.skip("CUDA kernels are built without the neighbour extension")
-    monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass
-    batch, box, k = None, UNIT, 8
-    if kind == "batch":
-        batch = ragged_batch([1500, 0, 2, 900], device)
-        points = rand(2402, gen, dtype, device)
-        box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]] * 4, dtype=dtype, device=device)
-    else:
-        points = point_set(kind, gen, seed, dtype, device)
-    monkeypatch.setenv("TORCHVOR_NEIGHBOR_EXTENSION", "0")
-    retried = run(points, box, batch=batch, k=k)
-    monkeypatch.delenv("TORCHVOR_NEIGHBOR_EXTENSION")
-    extended = run(points, box, batch=batch, k=k)
-    boxes = [box_of(points, UNIT)] * (1 if batch is None else 4)
-    check_global(extended, points, boxes, dtype, batch=batch)
-    assert_same_cells(extended, retried, dtype)
-    for name in VORONOI_FIELDS:
-        assert torch.equal(getattr(extended, name), getattr(retried, name)), name
-    if kind == "white":
-        assert int(extended.neighbors.max()) > k + 32
-
-
 @pytest.mark.parametrize("k", [4, None])
 def test_cooperative_knn_in_voronoi(monkeypatch, device, dtype, gen, k):
     """The passes' neighbour searches by a thread or a group of lanes per

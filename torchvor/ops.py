@@ -204,8 +204,7 @@ def voronoi(
             a (2, 3) tensor, or (B, 2, 3) with ``batch``.
         batch: optional (N,) int64 sorted batch vector: each cloud is its own diagram.
         k: neighbours fetched per cell in the first pass; cells that need more
-            are retried with 1.5 times as many (at least 8 more). On the CPU a
-            cell first searches up to 2 x 16 more itself. Default None: measured on a pilot
+            are retried with 1.5 times as many (at least 8 more). Default None: measured on a pilot
             sample of about 1000 cells (their 90th percentile), which suits
             blue noise (~16) and white noise (~60) alike.
         on_failure: what a cell that cannot be computed even after recovery does:

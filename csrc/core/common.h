@@ -53,11 +53,11 @@ TV_HD Vec3<T> load_vec3(const T* p) { return {p[0], p[1], p[2]}; }
 // GCC (-ffp-contract=fast) in code compiled for FMA, such as the CPU's AVX2
 // copy of the clip loop (cpu/isa.h), each site its own way. kNN promises
 // bitwise identical distances (hence identical tie-breaking) on CPU and
-// CUDA, and a thread cell that extends its neighbour list searches inside
-// that loop for the neighbours after one the kNN ranked: a distance fused
-// there put a neighbour back in the list (benchmarks/NOTES.md). On the host
-// an empty asm that takes the product in a register keeps it from being
-// fused into an addition.
+// CUDA, and the start tetrahedron's choice (det_rn) must come out alike on
+// both (a kNN search inside that loop, in an experiment, ranked a neighbour
+// differently from the kNN pass: benchmarks/NOTES.md). On the host an empty
+// asm that takes the product in a register keeps it from being fused into
+// an addition.
 template <typename F>
 TV_HD F held_product(F product) {
 #if !defined(__CUDA_ARCH__) && (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)

@@ -157,16 +157,6 @@ struct NeighborHeap {
     key[e] = item;
   }
 
-  // Heap sort: keys [0, size) in increasing order, in place (no extra
-  // memory). The heap is consumed.
-  TV_HD void sort_in_place() {
-    for (int32_t n = size - 1; n > 0; --n) {
-      const HeapKey<T> top = key[0];
-      sift_down(0, n, key[n]);
-      key[n] = top;
-    }
-  }
-
   // write_sorted by a group of lanes over a heap they share: each lane
   // places its keys at their ranks (keys are distinct), so no lane sorts.
   template <typename index_t, typename Lanes>
@@ -214,7 +204,11 @@ struct NeighborHeap {
       } else
 #endif
       {
-        sort_in_place();
+        for (int32_t n = size - 1; n > 0; --n) {
+          const HeapKey<T> top = key[0];
+          sift_down(0, n, key[n]);
+          key[n] = top;
+        }
       }
       for (int32_t e = 0; e < size; ++e) write(e, key[e]);
     }
@@ -227,22 +221,17 @@ struct NeighborHeap {
 
 // Offer every point of the sorted range [begin, end) to the heap. Two
 // phases: fill the heap, then compare each candidate with the worst key kept
-// in a register (most candidates stop there). With kAfter, only keys above
-// `after` are offered: the neighbours that follow a list the caller has
-// (NeighborExtension, voronoi_cell.h); the plain search compiles without
-// that test.
-template <bool kAfter = false, typename T>
+// in a register (most candidates stop there).
+template <typename T>
 TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3<T> query,
-                       int32_t excluded, NeighborHeap<T>& heap, HeapKey<T> after = {}) {
+                       int32_t excluded, NeighborHeap<T>& heap) {
   const auto candidate = [&](int32_t s, int32_t original) {
     return HeapKey<T>::make(squared_distance(load_vec3(grid.sorted_points + 3 * s), query), original);
   };
   int32_t s = begin;
   for (; s < end && !heap.full(); ++s) {
     const int32_t original = grid.original_index(s);
-    if (original == excluded) continue;
-    const HeapKey<T> item = candidate(s, original);
-    if (!kAfter || after < item) heap.push(item);
+    if (original != excluded) heap.push(candidate(s, original));
   }
   if (s == end) return;
   HeapKey<T> worst = heap.key[0];
@@ -250,7 +239,7 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
     const int32_t original = grid.original_index(s);
     const HeapKey<T> item = candidate(s, original);
     // The excluded point (the query itself, at distance 0) passes the first test.
-    if (item < worst && original != excluded && (!kAfter || after < item)) {
+    if (item < worst && original != excluded) {
       heap.replace_root(item);
       worst = heap.key[0];
     }
@@ -356,11 +345,10 @@ struct Rings {
 
 // Fill `heap` with the k nearest points of batch element `batch` to `query`
 // (excluding the point whose original index is `excluded`, or none if -1).
-// One thread per query. With kAfter, the nearest of those whose key comes
-// after `after` (offer_range): the search's bounds hold for them as well.
-template <bool kAfter = false, typename T>
+// One thread per query.
+template <typename T>
 TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int32_t excluded,
-                      NeighborHeap<T>& heap, T infinity, HeapKey<T> after = {}) {
+                      NeighborHeap<T>& heap, T infinity) {
   heap.size = 0;
   const Rings<T> rings(grid, batch, query);
   for (int32_t r = 0;; ++r) {
@@ -379,7 +367,7 @@ TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int
         TV_UNROLL
         for (int i = 0; i < 2; ++i) {
           if (ranges.begin[i] < ranges.end[i])
-            offer_range<kAfter>(grid, ranges.begin[i], ranges.end[i], query, excluded, heap, after);
+            offer_range(grid, ranges.begin[i], ranges.end[i], query, excluded, heap);
         }
       }
     }

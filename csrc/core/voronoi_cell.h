@@ -3,7 +3,6 @@
 
 #include "convex_cell.h"
 #include "cooperative_cell.h"
-#include "grid_search.h"
 
 namespace torchvor {
 namespace core {
@@ -45,10 +44,6 @@ struct NeighborReader {
   Vec3<T> seed;
   int32_t own_index = -1;  // this lane's neighbour (-1: none, or past k)
   Vec3<T> own_offset = {T(0), T(0), T(0)};
-  // Neighbours past the k of the list (NeighborExtension): neighbour n is
-  // extra[n - extra_first] while that is below extra_size.
-  const HeapKey<io_t>* extra = nullptr;
-  int32_t extra_first = 0, extra_size = 0;
 
   // Neighbour n's index and its offset from the seed, in every lane; steps
   // go up from n = 0, one at a time.
@@ -63,12 +58,7 @@ struct NeighborReader {
  private:
   TV_HD void fetch(int32_t base) {
     const int32_t n = base + lanes.index();
-    if (n < k) {
-      own_index = neighbors[n * stride];
-    } else {
-      const int32_t e = n - extra_first;
-      own_index = e >= 0 && e < extra_size ? extra[e].index() : -1;
-    }
+    own_index = n < k ? neighbors[n * stride] : -1;
     if (own_index >= 0) {
       own_offset = {T(points[3 * own_index]) - seed.x, T(points[3 * own_index + 1]) - seed.y,
                     T(points[3 * own_index + 2]) - seed.z};
@@ -76,61 +66,16 @@ struct NeighborReader {
   }
 };
 
-// More neighbours for a thread cell that has used up its list before the
-// radius of security: the next kExtra after the last one read, searched on
-// the grid the list came from (knn_search after that neighbour's key, so
-// the same neighbours in the same order as a longer list), up to kRounds
-// times. Without it such a cell fails, and the host reads the statuses and
-// launches a retry pass that recomputes it with a longer list. The backend
-// chooses (Exec::kExtendNeighborLists): the CPU extends, CUDA kernels are
-// built without it (one lane's serial search holds its warp back by more
-// than the retry pass costs; benchmarks/NOTES.md). A warp cell never extends. kExtra keys are
-// 128 bytes of a float32 thread's frame, touched only by the cells that
-// extend.
-template <typename io_t>
-struct NeighborExtension {
-  static constexpr int32_t kExtra = 16;
-  static constexpr int32_t kRounds = 2;
-  static constexpr int32_t kMost = kExtra * kRounds;  // neighbours a cell may add
-
-  HeapKey<io_t> keys[kExtra];  // sorted: neighbours first, first + 1, ...
-  int32_t first = 0;
-  int32_t size = 0;
-  int32_t rounds = 0;
-
-  // Neighbours from `first` on: those after `last` (the index of neighbour
-  // first - 1) in (distance, index) order, from the seed `seed_index`'s
-  // batch element `batch`, the seed itself excluded. False after kRounds.
-  TV_HD bool extend(const GridView<io_t>& grid, int64_t batch, const io_t* points, int32_t seed_index,
-                    int32_t last, int32_t from) {
-    if (rounds == kRounds) return false;
-    ++rounds;
-    const Vec3<io_t> seed = load_vec3(points + 3 * int64_t(seed_index));
-    const HeapKey<io_t> after =
-        HeapKey<io_t>::make(squared_distance(load_vec3(points + 3 * int64_t(last)), seed), last);
-    NeighborHeap<io_t> heap{StridedArray<HeapKey<io_t>>{keys, 1}, kExtra, 0};
-    knn_search<true>(grid, batch, seed, seed_index, heap, io_t(1) / io_t(0), after);
-    heap.sort_in_place();
-    first = from;
-    size = heap.size;
-    return true;
-  }
-};
-
 // `neighbors` lists k indices (the n-th at neighbors[n * stride]) sorted by
 // distance to the seed, padded with -1 when the batch element has fewer points. Coordinates are read as io_t
 // and computed in T (T may be wider, for the float64 recovery pass).
 // `Cell` is a ConvexCell (one thread) or a CooperativeCell (a group of lanes,
-// each of which runs this function with the same arguments). With `grid`
-// (the grid of the list's kNN over `points`, and the seed's batch element
-// `batch`), a thread cell that uses up the list extends it
-// (NeighborExtension) before it gives up.
+// each of which runs this function with the same arguments).
 template <typename Cell, typename io_t, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed_index,
                                     const int32_t* neighbors, int64_t stride, int32_t k,
                                     const io_t* box, T relative_tolerance, int band_widenings,
-                                    bool tetrahedron_start = true, const GridView<io_t>* grid = nullptr,
-                                    int64_t batch = 0) {
+                                    bool tetrahedron_start = true) {
   const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
                         T(points[3 * seed_index + 2])};
   const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
@@ -184,31 +129,10 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
   out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
   out.neighbors = k;
   Vec3<T> previous = {T(0), T(0), T(0)};
-  constexpr bool kCanExtend = Cell::Lanes::kCount == 1;
-  NeighborExtension<io_t> extension;
-  int32_t available = k;  // neighbours readable: the list's, then the extensions'
-  int32_t last = -1;      // the index of the neighbour read last
-  for (int32_t n = 0;; ++n) {
-    if (n == available) {
-      bool extended = false;
-      if constexpr (kCanExtend) {
-        if (grid != nullptr && last >= 0 && extension.extend(*grid, batch, points, seed_index, last, n)) {
-          reader.extra = extension.keys;
-          reader.extra_first = extension.first;
-          reader.extra_size = extension.size;
-          available += NeighborExtension<io_t>::kExtra;
-          extended = true;
-        }
-      }
-      if (!extended) {
-        out.neighbors = n;
-        break;
-      }
-    }
+  for (int32_t n = 0; n < k; ++n) {
     int32_t j;
     Vec3<T> r;  // the neighbour relative to the seed
     reader.read(n, j, r);
-    last = j;
     if (j < 0) {  // every point of the batch element has been used
       out.status = kSuccess;
       out.neighbors = n;

@@ -26,11 +26,6 @@ struct CpuExec {
   static bool cooperative_cells(int64_t /*cells*/, int64_t /*k*/) { return false; }
   static bool cooperative_queries(int64_t /*queries*/) { return false; }
   static bool fits_cooperative_scratch(int64_t /*bytes_per_item*/) { return true; }
-  // A cell that runs out of neighbours searches more itself
-  // (core::NeighborExtension): a thread's cell costs it one small search,
-  // where a retry pass recomputes the cell (2 cores, 100K white noise, k=24:
-  // 944-980 -> 620-627 ms; blue noise and the pilot's k unchanged).
-  static constexpr bool kExtendNeighborLists = true;
 
   // Small grains: the work per index varies a lot (cells near the box,
   // recovery passes), and the grid-ordered indices keep locality anyway.

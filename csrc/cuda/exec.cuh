@@ -151,17 +151,6 @@ struct CudaExec {
     return cells <= kCooperativeCellsUpTo || k >= kCooperativeCellsFromK;
   }
 
-  // Whether thread cells extend their neighbour lists themselves
-  // (core::NeighborExtension) instead of failing into a retry pass: no, and
-  // the kernels are built without it. An extension is one lane's serial grid
-  // search (its loads miss the caches the kNN pass left behind), and its
-  // warp waits for it: on blue noise each cost ~0.9 us of the clip kernel
-  // (H100, one Lloyd step at 10M, k=19, 825 extensions: clip 30.23 -> 30.96
-  // ms, the step 40.83 -> 41.60), more than the retry pass it saves (at
-  // k=24, 11 extensions: voronoi 10M 42.59 -> 42.28 ms, 1M 4.80 -> 4.71), and
-  // built in but off it left the clip kernel ~0.5% slower (benchmarks/NOTES.md).
-  static constexpr bool kExtendNeighborLists = false;
-
   // functor(i, lanes, arrays): the 32 lanes of a warp (core::WarpLanes) per
   // item, sharing one Arrays in shared memory; up to 4 warps a block, fewer
   // when their arrays pass the 48 KB a block gets without opting in.

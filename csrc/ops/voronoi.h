@@ -1,9 +1,7 @@
 // torchvor::voronoi_cells, shared by the CPU and CUDA backends.
 //
 // Cells are computed chunk by chunk (kNN into a bounded buffer, then clipping),
-// so no N x k neighbour array ever exists. On the CPU a cell that runs out
-// of neighbours first searches more on the grid (core::NeighborExtension).
-// Failed cells are retried with what
+// so no N x k neighbour array ever exists. Failed cells are retried with what
 // their status asks for: more neighbours, larger arrays, or more precision
 // (float64, then double-double on the CPU, where an inconsistent clip may also
 // widen its predicate band; ill-conditioned integrals ask for precision too).
@@ -73,10 +71,7 @@ at::Tensor empty_records(int64_t n, const at::TensorOptions& options) {
 }
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
-// EXTENDS: the kernel is built with core::NeighborExtension
-// (Exec::kExtendNeighborLists); without it the extension's code is not in
-// the kernel at all.
-template <typename io_t, typename T, int MAX_PLANES, bool EXTENDS>
+template <typename io_t, typename T, int MAX_PLANES>
 struct ClipFunctor {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
   using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
@@ -92,8 +87,6 @@ struct ClipFunctor {
   T tolerance;
   int band_widenings;          // > 0 only in the last-resort pass
   bool tetrahedron_start;      // core::compute_cell: from a tetrahedron where one fits (false: the box)
-  core::GridView<io_t> grid;   // the grid `neighbors` came from (over `points`)
-  bool extend_neighbors;       // a thread cell that uses up its k neighbours searches more on `grid`
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
   int8_t* status;              // (N,) by position: the records' statuses again
@@ -101,26 +94,25 @@ struct ClipFunctor {
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
     core::ConvexCell<T, MAX_PLANES, kMaxTriangles> cell;
-    write(t, compute(cell, t, EXTENDS && extend_neighbors));
+    write(t, compute(cell, t));
   }
 
   // A group of lanes computes cell t together, its arrays in `arrays`.
   template <typename Lanes>
   TV_HD void operator()(int64_t t, Lanes lanes, Arrays& arrays) const {
     core::CooperativeCell<T, MAX_PLANES, kMaxTriangles, Lanes> cell(arrays, lanes);
-    const core::CellIntegrals<T> out = compute(cell, t, false);  // lanes do not extend
+    const core::CellIntegrals<T> out = compute(cell, t);
     if (lanes.index() == 0) write(t, out);
   }
 
   template <typename Cell>
-  TV_HD core::CellIntegrals<T> compute(Cell& cell, int64_t t, bool extend) const {
+  TV_HD core::CellIntegrals<T> compute(Cell& cell, int64_t t) const {
     const int32_t cell_id = cells[t];
     const int64_t b = batch ? batch[cell_id] : 0;
     return core::compute_cell(cell, points, cell_id,
                               neighbors + (neighbors_column_major ? t : t * int64_t(k)),
                               neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b,
-                              tolerance, band_widenings, tetrahedron_start,
-                              extend ? &grid : nullptr, b);
+                              tolerance, band_widenings, tetrahedron_start);
   }
 
   TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
@@ -275,35 +267,18 @@ inline bool tetrahedron_start() {
   return !(forced != nullptr && std::strcmp(forced, "box") == 0);
 }
 
-// Whether thread cells extend their neighbour lists in a pass
-// (core::NeighborExtension): where the backend builds them so
-// (Exec::kExtendNeighborLists: the CPU), unless TORCHVOR_NEIGHBOR_EXTENSION=0
-// (the tests compare the two; benchmarks time them).
-template <typename Exec>
-bool neighbor_extension() {
-  const char* chosen = std::getenv("TORCHVOR_NEIGHBOR_EXTENSION");
-  return Exec::kExtendNeighborLists && !(chosen != nullptr && std::strcmp(chosen, "0") == 0);
-}
-
-// Clips the cells of one chunk. With `grid` (the grid `neighbors` came
-// from), thread cells extend their lists where they run out
-// (core::NeighborExtension); returns whether they could (thread cells and
-// a grid), so that the host knows how many neighbours a failed cell had.
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
-bool clip_chunk(const at::Tensor& points, const at::Tensor& box,
+void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
-                bool rows_by_step, const Grid* grid, PositionOutputs& out) {
-  using Functor = ClipFunctor<io_t, T, MAX_PLANES, Exec::kExtendNeighborLists>;
-  Functor functor{
+                bool rows_by_step, PositionOutputs& out) {
+  ClipFunctor<io_t, T, MAX_PLANES> functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
       cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
       static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
       T(core::ClipTolerance<T>::value),
       band_widenings,                 tetrahedron_start(),
-      grid != nullptr ? grid->view<io_t>() : core::GridView<io_t>{},
-      grid != nullptr,
       rows_by_step,                   out.data<io_t>(),
       out.status.data_ptr<int8_t>()};
   // One thread per cell (ConvexCell) or a group of lanes per cell
@@ -313,25 +288,22 @@ bool clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor);
-    return grid != nullptr;
   } else if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1)))) {
-    Exec::template for_each_cooperative<typename Functor::Arrays>(cells.size(0), functor);
-    return false;
+    Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
+                                                                                          functor);
   } else {
     Exec::for_each_cell(cells.size(0), functor);
-    return grid != nullptr;
   }
 }
 
 template <typename Exec, typename io_t, typename T>
-bool clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
+void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                     const at::Tensor& neighbors, int tier, const Grid* grid, PositionOutputs& out) {
-  constexpr bool kColumns = Exec::kColumnMajorNeighbors;
+                     const at::Tensor& neighbors, int tier, PositionOutputs& out) {
   switch (tier) {
-    case 0: return clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, kColumns, 0, false, grid, out);
-    case 1: return clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, kColumns, 0, false, grid, out);
-    default: return clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, kColumns, 0, false, grid, out);
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
   }
 }
 
@@ -351,20 +323,17 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
   part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
       cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
-      /*band_widenings=*/6, /*rows_by_step=*/true, /*grid=*/nullptr, part);
+      /*band_widenings=*/6, /*rows_by_step=*/true, part);
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
   out.status.index_copy_(0, rows, part.status.to(out.status.device()));
 }
 
 // One pass over `cells` (int32 point ids), in chunks of bounded memory.
-// With `extend`, thread cells may extend their neighbour lists
-// (core::NeighborExtension); returns whether they did so: then a cell that
-// failed for want of neighbours had pass.k + NeighborExtension::kMost.
 template <typename Exec, typename io_t>
-bool run_pass(const at::Tensor& points, const at::Tensor& box,
+void run_pass(const at::Tensor& points, const at::Tensor& box,
               const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
-              const PassSettings& pass, int64_t memory_budget, bool extend, PositionOutputs& out) {
+              const PassSettings& pass, int64_t memory_budget, PositionOutputs& out) {
   TORCH_CHECK(cells.is_contiguous(), "torchvor: internal error: cell list not contiguous");
   // The budget holds the chunk's neighbour ids. Chunks of equal size: a
   // small last chunk would leave most of the GPU idle while its few cells
@@ -373,8 +342,6 @@ bool run_pass(const at::Tensor& points, const at::Tensor& box,
   const int64_t largest_chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
   const int64_t chunks = std::max<int64_t>(1, (cells.size(0) + largest_chunk - 1) / largest_chunk);
   const int64_t chunk = (cells.size(0) + chunks - 1) / chunks;
-  // Chunks of equal size take the same path: the last one's answer holds for all.
-  bool extended = false;
   for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
     const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
     const int64_t m = part.size(0);
@@ -385,18 +352,15 @@ bool run_pass(const at::Tensor& points, const at::Tensor& box,
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                         /*row_by_query=*/false, Exec::kColumnMajorNeighbors, no_distances, neighbors);
-    const Grid* extension_grid = extend ? &grid : nullptr;
     if (pass.precision == Precision::kDoubleDouble) {
       clip_chunk_double_double<io_t>(points, box, batch, part, neighbors,
                                      Exec::kColumnMajorNeighbors, out);
-      extended = false;
     } else if (pass.precision == Precision::kFloat64 || std::is_same<io_t, double>::value) {
-      extended = clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, extension_grid, out);
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, out);
     } else {
-      extended = clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, extension_grid, out);
+      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, out);
     }
   }
-  return extended;
 }
 
 // First-pass k measured on a pilot: about 1000 cells spread over the grid
@@ -409,9 +373,7 @@ int64_t pilot_k(const at::Tensor& positions, int64_t largest_cloud, const Run& r
   const int64_t n = positions.size(0);
   const int64_t stride = std::max<int64_t>(1, n / 1024);
   const at::Tensor sample = positions.slice(0, 0, n, stride).contiguous();
-  // Without extensions: a cell's count then stops at the pilot's k, as the
-  // percentile assumes.
-  run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput}, false);
+  run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput});
   const at::Tensor needed = out.num_neighbors<io_t>().index_select(0, sample).to(at::kFloat);
   const int64_t p90 = static_cast<int64_t>(at::quantile(needed, 0.9).item<float>());
   return std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2));
@@ -453,9 +415,8 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
                                    : c10::nullopt;
   };
-  const bool extend = neighbor_extension<Exec>();
-  const auto run = [&](const at::Tensor& cells, const PassSettings& pass, bool extend_lists) {
-    return run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, extend_lists, out);
+  const auto run = [&](const at::Tensor& cells, const PassSettings& pass) {
+    run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, out);
   };
   // The grid's density follows k (points_per_cell_for). Without k, the pilot
   // runs on the density of k = 32 and the grid is rebuilt when the measured
@@ -474,7 +435,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   at::Tensor pending = positions;
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
-    const bool extended = run(pending, pass, extend);
+    run(pending, pass);
     // Which status codes this pass produced and which cells failed, in one
     // read (one device sync). The failed cells come in no set order (the
     // scan appends them as it finds them); each cell's result does not
@@ -498,12 +459,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
     // (2 CPU cores, 100K white / perturbed / blue: 502 / 396 / 256 ms at 2x,
     // 488 / 384 / 251 at 1.5x, 496 / 386 / 254 at 1.25x).
-    if (ask[0]) {
-      // The failed cells had the pass's k, or as many again as their
-      // extensions could add.
-      const int64_t had = pass.k + (extended ? core::NeighborExtension<io_t>::kMost : 0);
-      next.k = std::min(had + std::max<int64_t>(8, had / 2), largest_cloud);
-    }
+    if (ask[0]) next.k = std::min(pass.k + std::max<int64_t>(8, pass.k / 2), largest_cloud);
     if (ask[1]) next.tier = std::min(pass.tier + 1, 2);
     if (ask[2]) {
       next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
