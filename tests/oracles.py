@@ -403,6 +403,35 @@ def _solve3(planes):
     return tuple((c0 * n12[a] + c1 * n20[a] + c2 * n01[a]) / det for a in range(3))
 
 
+def _ring_order(ring, normal):
+    """The exact points `ring` of a convex polygon in the plane with `normal`,
+    in order around it: an angular sort about their mean by half-plane, then
+    by the sign of a cross product (no angle is computed)."""
+    from fractions import Fraction
+    from functools import cmp_to_key
+
+    axis = min(range(3), key=lambda a: abs(normal[a]))
+    u = _cross(normal, tuple(Fraction(int(a == axis)) for a in range(3)))
+    w = _cross(normal, u)
+    centre = tuple(sum(v[a] for v in ring) / len(ring) for a in range(3))
+    coords = {}
+    for v in ring:
+        offset = tuple(v[a] - centre[a] for a in range(3))
+        coords[v] = (_dot(offset, u), _dot(offset, w))
+
+    def half(c):  # 0 for angles in [0, pi), 1 for [pi, 2 pi)
+        return 0 if (c[1] > 0 or (c[1] == 0 and c[0] > 0)) else 1
+
+    def compare(p, q):
+        cp, cq = coords[p], coords[q]
+        if half(cp) != half(cq):
+            return half(cp) - half(cq)
+        cross = cp[0] * cq[1] - cp[1] * cq[0]
+        return -1 if cross > 0 else (1 if cross < 0 else 0)
+
+    return sorted(ring, key=cmp_to_key(compare))
+
+
 def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] = None) -> CellOracle:
     """Voronoi cell of points[i] clipped to box = (lo, hi) in exact rational
     arithmetic (Fractions over the float64 inputs): for cells whose vertices
@@ -456,8 +485,8 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
         if not violated:
             break
         chosen = sorted(set(chosen) | violated)
-    # Each face: its vertices in order around it (an exact angular sort in the
-    # face's plane), fanned from the first; tetrahedra with the seed (origin).
+    # Each face: its vertices in order around it (_ring_order), fanned from
+    # the first; tetrahedra with the seed (origin).
     on_plane = {}
     for v, through in vertices.items():
         for t in through:
@@ -469,26 +498,7 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     for t, ring in on_plane.items():
         if len(ring) < 3:
             continue
-        normal = planes[t][0]
-        axis = min(range(3), key=lambda a: abs(normal[a]))
-        u = _cross(normal, tuple(Fraction(int(a == axis)) for a in range(3)))
-        w = _cross(normal, u)
-        centre = tuple(sum(v[a] for v in ring) / len(ring) for a in range(3))
-        coords = [(_dot(tuple(v[a] - centre[a] for a in range(3)), u),
-                   _dot(tuple(v[a] - centre[a] for a in range(3)), w), v) for v in ring]
-
-        def half(c):  # 0 for angles in [0, pi), 1 for [pi, 2 pi)
-            return 0 if (c[1] > 0 or (c[1] == 0 and c[0] > 0)) else 1
-
-        from functools import cmp_to_key
-
-        def compare(p, q):
-            if half(p) != half(q):
-                return half(p) - half(q)
-            cross = p[0] * q[1] - p[1] * q[0]
-            return -1 if cross > 0 else (1 if cross < 0 else 0)
-
-        ordered = [c[2] for c in sorted(coords, key=cmp_to_key(compare))]
+        ordered = _ring_order(ring, planes[t][0])
         a0 = ordered[0]
         for b, c in zip(ordered[1:-1], ordered[2:]):
             six = _dot(a0, _cross(b, c))

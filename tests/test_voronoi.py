@@ -417,6 +417,14 @@ def test_lattice_single_layer(device, dtype):
 # ---------------------------------------------------------- awkward geometries
 
 
+def tight_clusters(gen, spread):
+    """8 clusters of 40 points (float64) with Gaussian spread `spread` around
+    centres in [0.1, 0.9]^3, clamped into the unit box."""
+    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
+    points = centres.repeat_interleave(40, 0) + spread * torch.randn(320, 3, generator=gen, dtype=torch.float64)
+    return points.clamp(0, 1)
+
+
 @pytest.mark.parametrize("spread", [1e-3, 1e-5, 1e-6])
 def test_tight_clusters(device, dtype, gen, spread, cells_impl):
     """Clusters of 40 points with Gaussian spread 1e-3 .. 1e-6 (far above the
@@ -424,9 +432,7 @@ def test_tight_clusters(device, dtype, gen, spread, cells_impl):
     needles (~1e-5 wide, ~0.1 long) whose faces float32 fixes only to about
     eps * R: float32 is compared with a conditioning allowance (measured errors
     reach ~70 eps R A, i.e. up to 35% of a 5e-11 needle's volume)."""
-    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-    points = centres.repeat_interleave(40, 0) + spread * torch.randn(320, 3, generator=gen, dtype=torch.float64)
-    points = points.clamp(0, 1).to(dtype).to(device)
+    points = tight_clusters(gen, spread).to(dtype).to(device)
     cells = run(points, UNIT)
     lohi = box_of(points, UNIT)
     check_global(cells, points, [lohi], dtype)
@@ -463,9 +469,7 @@ def test_needle_cell_exact_float64(device, cells_impl):
     without the recomputation.)"""
     gen = torch.Generator()
     gen.manual_seed(1047518939)
-    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-    points = centres.repeat_interleave(40, 0) + 1e-5 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
-    points = points.clamp(0, 1)
+    points = tight_clusters(gen, 1e-5)
     assert points[59].tolist() == [0.35760402697859545, 0.8997942077279265, 0.6421634167118496]
     cells = run(points.to(device), UNIT)
     assert cells.status[59].item() == CellStatus.SUCCESS
@@ -488,9 +492,7 @@ def test_float64_cell_at_nearly_concurrent_bisectors(device):
     goal. The oracles are held to each other at 1e-13."""
     gen = torch.Generator()
     gen.manual_seed(3321684543)
-    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-    points = centres.repeat_interleave(40, 0) + 1e-5 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
-    points = points.clamp(0, 1)
+    points = tight_clusters(gen, 1e-5)
     assert points[211].tolist() == [0.3885020495206787, 0.8110196492366557, 0.639860898022586]
     lohi = box_of(points, UNIT)
     exact = exact_cell_oracle(points.numpy(), 211, lohi)
@@ -512,9 +514,7 @@ def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
     that to float32 output rounding (the scan's worst cell: 3e-6)."""
     gen = torch.Generator()
     gen.manual_seed(25)
-    centres = torch.rand(8, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.1
-    points = centres.repeat_interleave(40, 0) + 1e-6 * torch.randn(320, 3, generator=gen, dtype=torch.float64)
-    points = points.clamp(0, 1).float()
+    points = tight_clusters(gen, 1e-6).float()
     cells = run(points.to(device), UNIT)
     reference = run(points.double(), UNIT)
     assert cells.status[5].item() == CellStatus.SUCCESS
