@@ -10,9 +10,11 @@ of one profiled call.
 
     python benchmarks/ab_env.py "default" "TORCHVOR_CELL_START=box" [--rounds 15] [--sizes 1M,10M] [--kernels]
 
-Calls: voronoi on blue noise (k=24), one Lloyd iteration on it (k=19, from
-points already in Lloyd's grid order, as in late iterations). Blue noise is
-made by 100 Lloyd iterations on the machine and cached in /tmp.
+Calls (--kinds): voronoi on blue noise (k=24) and one Lloyd iteration on it
+(k=19, from points already in Lloyd's grid order, as in late iterations);
+voronoi on a perturbed grid (k=48) and on white noise (k=64), the
+benchmark's first-pass k (bench_voronoi.py). Blue noise is made by 100 Lloyd
+iterations on the machine and cached in /tmp.
 """
 import argparse
 import os
@@ -75,47 +77,60 @@ def kernel_ms(fn) -> dict:
     return out
 
 
+def calls_for(kind: str, tag: str) -> dict:
+    n = SIZES[tag]
+    if kind == "blue":
+        points = blue_noise(n, tag)
+        box = as_box(points, BOX)
+        # Lloyd's late iterations start from points already in grid order.
+        cells, order = _voronoi_in_grid_order(points, box, None, 19)
+        in_grid_order = points.index_select(0, order)
+        return {
+            f"voronoi {tag} blue k=24": lambda: torchvor.voronoi(points, BOX, k=24, on_failure="flag"),
+            f"lloyd step {tag} k=19": lambda: torchvor.lloyd(in_grid_order, box, iters=1, k=19),
+        }
+    make, k = {"perturbed": (torchvor.samples.perturbed_grid, 48), "white": (torchvor.samples.white_noise, 64)}[kind]
+    points = make(n, seed=1).to(DEVICE)
+    return {f"voronoi {tag} {kind} k={k}": lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")}
+
+
+def time_calls(calls: dict, settings: list, rounds: int, kernels: bool) -> None:
+    times = {(call, s): [] for call in calls for s in settings}
+    for setting in settings:  # warm-up
+        apply(setting)
+        for fn in calls.values():
+            fn()
+    for _ in range(rounds):
+        for call, fn in calls.items():
+            for setting in settings:
+                apply(setting)
+                times[(call, setting)].append(wall_ms(fn))
+    for call, fn in calls.items():
+        for setting in settings:
+            apply(setting)
+            values = sorted(times[(call, setting)])
+            line = (f"{call} | {setting} | median {statistics.median(values):.3f} ms | "
+                    f"quartiles {values[len(values) // 4]:.3f}-{values[(3 * len(values)) // 4]:.3f}")
+            if kernels:
+                line += f" | {kernel_ms(fn)}"
+            print(line, flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("settings", nargs="+", help='"default" or NAME=VALUE[,NAME=VALUE]')
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--sizes", default="1M,10M")
+    parser.add_argument("--kinds", default="blue", help="blue, perturbed, white (comma-separated)")
     parser.add_argument("--kernels", action="store_true")
     parser.add_argument("--device", default="cuda", help="cpu: a dry run of this script (timed by the host clock)")
     args = parser.parse_args()
     global DEVICE
     DEVICE = args.device
     for tag in args.sizes.split(","):
-        points = blue_noise(SIZES[tag], tag)
-        box = as_box(points, BOX)
-        # Lloyd's late iterations start from points already in grid order.
-        cells, order = _voronoi_in_grid_order(points, box, None, 19)
-        in_grid_order = points.index_select(0, order)
-        calls = {
-            f"voronoi {tag} blue k=24": lambda: torchvor.voronoi(points, BOX, k=24, on_failure="flag"),
-            f"lloyd step {tag} k=19": lambda: torchvor.lloyd(in_grid_order, box, iters=1, k=19),
-        }
-        times = {(call, s): [] for call in calls for s in args.settings}
-        for setting in args.settings:  # warm-up
-            apply(setting)
-            for fn in calls.values():
-                fn()
-        for _ in range(args.rounds):
-            for call, fn in calls.items():
-                for setting in args.settings:
-                    apply(setting)
-                    times[(call, setting)].append(wall_ms(fn))
-        for call, fn in calls.items():
-            for setting in args.settings:
-                apply(setting)
-                values = sorted(times[(call, setting)])
-                line = (f"{call} | {setting} | median {statistics.median(values):.3f} ms | "
-                        f"quartiles {values[len(values) // 4]:.3f}-{values[(3 * len(values)) // 4]:.3f}")
-                if args.kernels:
-                    line += f" | {kernel_ms(fn)}"
-                print(line, flush=True)
-        apply("default")
-
+        for kind in args.kinds.split(","):
+            time_calls(calls_for(kind, tag), args.settings, args.rounds, args.kernels)
+    apply("default")
 
 if __name__ == "__main__":
     main()

@@ -66,8 +66,8 @@ blue, _ = common.make_points("blue", 1_000_000, seed=0, dtype=torch.float32, dev
                              cache_dir=common.Path("benchmarks/.cache"))
 torch.save(blue.cpu(), "/tmp/blue_1m.pt")
 PY
-      for case in "warp_white white 64 for_each_cooperative_kernel" "warp_perturbed perturbed 48 for_each_cooperative_kernel" \
-                  "thread_blue blue 24 for_each_strided_kernel"; do
+      for case in "warp_white white 64 for_each_cooperative_claimed_kernel" "warp_perturbed perturbed 48 for_each_cooperative_claimed_kernel" \
+                  "thread_blue blue 24 for_each_claimed_kernel"; do
         read -r name points k kernel <<<"$case"
         [[ " ${NCU_CASES:-$name} " == *" $name "* ]] || continue
         ncu --clock-control none --set full --import-source yes --kernel-name-base demangled \

@@ -1136,9 +1136,10 @@ def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("blocks_per_sm", ["1", "1000"])
 def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_per_sm):
-    """On CUDA, one thread per cell runs on a capped grid, each thread taking
-    cells a grid apart (CudaExec::for_each_cell); TORCHVOR_CELL_BLOCKS_PER_SM
-    overrides the cap. One block an SM (every thread takes many cells) and
+    """On CUDA, one thread per cell runs on a capped grid, each warp claiming
+    32 cells at a time from a counter (CudaExec::for_each_cell);
+    TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap. One block an SM (every
+    warp claims several times) and
     more than fit (clamped to what the SM holds) give the default's cells,
     bit for bit, and none is left unwritten."""
     points = rand(40000, gen, dtype, "cuda")
@@ -1149,6 +1150,29 @@ def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_p
     check_global(capped, points, [box_of(points, UNIT)], dtype)
     for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
         assert torch.equal(getattr(default, name), getattr(capped, name)), name
+
+
+@pytest.mark.skipif(not has_cuda, reason="needs CUDA")
+def test_cuda_warps_claim_many_cells(monkeypatch, dtype, gen):
+    """On CUDA a warp per cell runs as a persistent kernel whose warps claim
+    one cell at a time from a counter (CudaExec::for_each_cooperative). With
+    40000 cells, several times the warps an H100 holds (at most 64 an SM),
+    each warp claims many: every cell is written, and the cells are the
+    thread cells' up to rounding. (Neighbour counts are compared on smaller
+    sets, test_cooperative_cells_match_thread_cells: over 40000 cells a
+    rounding may move one cell's radius of security by a neighbour.)"""
+    points = rand(40000, gen, dtype, "cuda")
+    results = {}
+    for impl in ("thread", "cooperative"):
+        monkeypatch.setenv("TORCHVOR_CELLS", impl)
+        results[impl] = torchvor.voronoi(points, UNIT, k=24)
+    coop, thread = results["cooperative"], results["thread"]
+    check_global(coop, points, [box_of(points, UNIT)], dtype)
+    assert torch.equal(coop.status, thread.status)
+    rtol = RTOL[dtype]
+    size = float(thread.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(coop.volume, thread.volume, rtol=rtol, atol=rtol * size ** 3)
+    torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
 
 
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")

@@ -22,11 +22,41 @@ __global__ void for_each_kernel(int64_t n, Functor functor) {
   if (i < n) functor(i);
 }
 
-// A grid smaller than the items: each thread takes items a grid apart.
+// Persistent kernels (a grid of the blocks the GPU holds at once, or fewer)
+// whose warps claim their items from a counter (zeroed before the launch):
+// a warp slowed by costly items claims fewer, so the kernel does not wait on
+// its slowest warps' last items, and a block's warps never wait on each
+// other. claim(): the first of the `count` items claimed by the calling
+// warp (all its lanes call it together).
+__device__ inline unsigned long long claim(unsigned long long* next_item, unsigned count) {
+  unsigned long long first = 0;
+  if ((threadIdx.x & 31) == 0) first = atomicAdd(next_item, static_cast<unsigned long long>(count));
+  return __shfl_sync(0xffffffffu, first, 0);
+}
+
+// A thread per item, a warp claiming 32 consecutive items at a time (item
+// 32 w + lane: a warp's cells read one line per neighbour, as before).
 template <typename Functor>
-__global__ void for_each_strided_kernel(int64_t n, Functor functor) {
-  for (int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x)
-    functor(i);
+__global__ void for_each_claimed_kernel(int64_t n, unsigned long long* next_item, Functor functor) {
+  for (;;) {
+    const unsigned long long first = claim(next_item, 32u);
+    if (first >= static_cast<unsigned long long>(n)) return;
+    const int64_t i = static_cast<int64_t>(first) + (threadIdx.x & 31);
+    if (i < n) functor(i);
+  }
+}
+
+// A warp per item, each warp claiming one item at a time, with its Arrays in
+// dynamic shared memory.
+template <typename Arrays, typename Functor>
+__global__ void for_each_cooperative_claimed_kernel(int64_t n, unsigned long long* next_item, Functor functor) {
+  extern __shared__ __align__(16) unsigned char shared_bytes[];
+  Arrays& arrays = reinterpret_cast<Arrays*>(shared_bytes)[threadIdx.x / 32];
+  for (;;) {
+    const unsigned long long item = claim(next_item, 1u);
+    if (item >= static_cast<unsigned long long>(n)) return;
+    functor(static_cast<int64_t>(item), core::WarpLanes{}, arrays);
+  }
 }
 
 // Scratch in dynamic shared memory, interleaved across the block's threads.
@@ -43,17 +73,6 @@ template <typename Functor>
 __global__ void for_each_global_scratch_kernel(int64_t n, unsigned char* scratch, Functor functor) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i < n) functor(i, core::ScratchArena{scratch, i, n});
-}
-
-// One warp per item, each with its Arrays in dynamic shared memory; a warp
-// never splits (the whole warp returns when its item is out of range).
-template <typename Arrays, typename Functor>
-__global__ void for_each_cooperative_kernel(int64_t n, Functor functor) {
-  extern __shared__ __align__(16) unsigned char shared_bytes[];
-  const int warp = threadIdx.x / 32;
-  const int64_t i = int64_t(blockIdx.x) * (blockDim.x / 32) + warp;
-  if (i >= n) return;
-  functor(i, core::WarpLanes{}, reinterpret_cast<Arrays*>(shared_bytes)[warp]);
 }
 
 // One warp per item with `bytes_per_item` of dynamic shared memory each.
@@ -86,6 +105,25 @@ struct CudaExec {
   // Neighbour n of cell t at n * chunk + t: a warp's 32 cells read and write
   // one contiguous line per neighbour instead of 32 scattered ones.
   static constexpr bool kColumnMajorNeighbors = true;
+
+  // The device's SMs (a MIG slice has fewer), asked at each launch.
+  static int64_t sm_count(int& device) {
+    int sms = 0;
+    C10_CUDA_CHECK(cudaGetDevice(&device));
+    C10_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+    return sms;
+  }
+
+  // The zeroed item counter of a claimed kernel (claim()), on the current
+  // stream (the caching allocator reuses it in stream order).
+  static at::Tensor item_counter(int device, cudaStream_t stream) {
+    const at::Tensor counter = at::empty({1}, at::TensorOptions().dtype(at::kLong).device(at::kCUDA, device));
+    C10_CUDA_CHECK(cudaMemsetAsync(counter.data_ptr(), 0, sizeof(unsigned long long), stream));
+    return counter;
+  }
+  static unsigned long long* counter_ptr(const at::Tensor& counter) {
+    return reinterpret_cast<unsigned long long*>(counter.data_ptr<int64_t>());
+  }
 
   // 0, 1, ..., n - 1 as int32. (at::arange's kernel took 95 us for 10M on
   // an H100, where a store a thread takes ~15.)
@@ -153,16 +191,29 @@ struct CudaExec {
 
   // functor(i, lanes, arrays): the 32 lanes of a warp (core::WarpLanes) per
   // item, sharing one Arrays in shared memory; up to 4 warps a block, fewer
-  // when their arrays pass the 48 KB a block gets without opting in.
+  // when their arrays pass the 48 KB a block gets without opting in. The
+  // warps claim one item at a time (for_each_cooperative_claimed_kernel):
+  // with a block per 4 items, a block held its shared memory until its
+  // slowest cell was done (10M, H100: clip kernels of a perturbed grid,
+  // k=48, 134.1 -> 126.1 ms; white noise, k=64, 177.4 -> 170.2 ms).
   template <typename Arrays, typename Functor>
   static void for_each_cooperative(int64_t n, const Functor& functor) {
     if (n == 0) return;
     constexpr int64_t kSharedPerBlock = 48 * 1024;
     static_assert(sizeof(Arrays) <= kSharedPerBlock, "a cell's arrays must fit in 48 KB of shared memory");
     const int64_t warps = std::min<int64_t>(kThreads / 32, kSharedPerBlock / int64_t(sizeof(Arrays)));
-    const int64_t blocks = (n + warps - 1) / warps;
-    for_each_cooperative_kernel<Arrays, Functor>
-        <<<blocks, int(32 * warps), warps * sizeof(Arrays), at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    const int64_t shared_bytes = warps * int64_t(sizeof(Arrays));
+    const auto kernel = for_each_cooperative_claimed_kernel<Arrays, Functor>;
+    static const int64_t most = [&] {  // blocks an SM holds (the kernel's and the architecture's)
+      int blocks = 0;
+      C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks, kernel, int(32 * warps), shared_bytes));
+      return std::max<int64_t>(1, blocks);
+    }();
+    int device = 0;
+    const int64_t blocks = std::min<int64_t>((n + warps - 1) / warps, sm_count(device) * most);
+    const auto stream = at::cuda::getCurrentCUDAStream();
+    const at::Tensor counter = item_counter(device, stream);
+    kernel<<<blocks, int(32 * warps), shared_bytes, stream>>>(n, counter_ptr(counter), functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 
@@ -202,16 +253,18 @@ struct CudaExec {
   // k=24, H100: blocks of 128 an SM 8 (the full residency) / 6 / 4 / 3 / 2 /
   // 1: clip kernel 7.79 / 6.38 / 4.67 / 4.49 / 5.33 / 8.42 ms.
   // TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap (benchmarks).
+  // The warps claim 32 cells at a time (for_each_claimed_kernel): with each
+  // thread taking cells a grid apart, the kernel waited on its slowest warps'
+  // last rounds (10M blue noise, k=24, H100: clip kernel 29.6 -> 28.0 ms).
   static constexpr int64_t kCellFramesPerSm = 1024 * 1024;
 
   template <typename Functor>
   static void for_each_cell(int64_t n, const Functor& functor) {
     if (n == 0) return;
-    const auto kernel = for_each_strided_kernel<Functor>;
+    const auto kernel = for_each_claimed_kernel<Functor>;
     // The kernel's frame and the blocks an SM holds depend only on the kernel
     // and the GPU architecture (a process is taken to see one), so they are
-    // asked once, not at every pass; the SM count is the device's (a MIG
-    // slice has fewer), asked at each launch.
+    // asked once, not at every pass.
     struct Residency {
       int64_t frame_bytes;  // the stack frame of one thread
       int64_t most;         // blocks of kThreads an SM can hold
@@ -224,14 +277,15 @@ struct CudaExec {
       return Residency{std::max<int64_t>(1, static_cast<int64_t>(attributes.localSizeBytes)),
                        std::max<int64_t>(1, most)};
     }();
-    int device = 0, sms = 0;
-    C10_CUDA_CHECK(cudaGetDevice(&device));
-    C10_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+    int device = 0;
+    const int64_t sms = sm_count(device);
     int64_t per_sm = kCellFramesPerSm / (kThreads * residency.frame_bytes);
     if (const char* chosen = std::getenv("TORCHVOR_CELL_BLOCKS_PER_SM")) per_sm = std::atoi(chosen);
     per_sm = std::max<int64_t>(1, std::min<int64_t>(per_sm, residency.most));
     const int64_t blocks = std::min<int64_t>((n + kThreads - 1) / kThreads, sms * per_sm);
-    kernel<<<blocks, kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(n, functor);
+    const auto stream = at::cuda::getCurrentCUDAStream();
+    const at::Tensor counter = item_counter(device, stream);
+    kernel<<<blocks, kThreads, 0, stream>>>(n, counter_ptr(counter), functor);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 
