@@ -47,7 +47,10 @@ __global__ void for_each_claimed_kernel(int64_t n, unsigned long long* next_item
 }
 
 // A warp per item, each warp claiming one item at a time, with its Arrays in
-// dynamic shared memory.
+// dynamic shared memory. The Arrays are reused from item to item: the
+// __syncwarp orders the last item's reads (its integrals) before the next
+// item's writes (its start), which the shuffle in claim() does not
+// (compute-sanitizer racecheck reported them).
 template <typename Arrays, typename Functor>
 __global__ void for_each_cooperative_claimed_kernel(int64_t n, unsigned long long* next_item, Functor functor) {
   extern __shared__ __align__(16) unsigned char shared_bytes[];
@@ -56,6 +59,7 @@ __global__ void for_each_cooperative_claimed_kernel(int64_t n, unsigned long lon
     const unsigned long long item = claim(next_item, 1u);
     if (item >= static_cast<unsigned long long>(n)) return;
     functor(static_cast<int64_t>(item), core::WarpLanes{}, arrays);
+    __syncwarp();
   }
 }
 
