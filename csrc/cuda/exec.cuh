@@ -187,6 +187,9 @@ struct CudaExec {
   // perturbed favour the warp at every k from 24 to 80, by 1.16-1.58x, blue
   // the thread at every k). From k = 40: a caller's k up to 39 on blue noise
   // stays on threads, and the pilot's k of both irregular kinds is above.
+  // With warps claiming their cells (d704843) perturbed grids favour the
+  // thread at k 48-56 (16.61 / 17.92 ms at k=48) while white noise still
+  // favours the warp by 1.09-1.27x: k alone cannot tell them apart.
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
   static constexpr int64_t kCooperativeCellsFromK = 40;
   static bool cooperative_cells(int64_t cells, int64_t k) {
