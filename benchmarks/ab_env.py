@@ -13,31 +13,35 @@ of one profiled call.
 Calls (--kinds): voronoi on blue noise (k=24) and one Lloyd iteration on it
 (k=19, from points already in Lloyd's grid order, as in late iterations);
 voronoi on a perturbed grid (k=48) and on white noise (k=64), the
-benchmark's first-pass k (bench_voronoi.py). Blue noise is made by 100 Lloyd
-iterations on the machine and cached in /tmp.
+benchmark's first-pass k (bench_voronoi.py). The point sets are the
+benchmarks' (common.make_points, seed 0; blue noise cached in
+benchmarks/.cache, shared with bench_voronoi.py).
 """
 import argparse
 import os
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
-import torchvor
-import torchvor.samples
 from torch.profiler import ProfilerActivity, profile
-from torchvor.ops import _voronoi_in_grid_order, as_box
 
-BOX = ([0, 0, 0], [1, 1, 1])
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import common  # noqa: E402
+import torchvor  # noqa: E402
+from torchvor.ops import _voronoi_in_grid_order, as_box  # noqa: E402
+
+BOX = common.UNIT_BOX
 SIZES = {"100K": 100_000, "1M": 1_000_000, "10M": 10_000_000}
+FIRST_PASS_K = {"blue": 24, "perturbed": 48, "white": 64}
 DEVICE = "cuda"
 
 
-def blue_noise(n: int, tag: str) -> torch.Tensor:
-    cache = f"/tmp/blue_{tag.lower()}.pt"
-    if not os.path.exists(cache):
-        white = torchvor.samples.white_noise(n, device=DEVICE)
-        torch.save(torchvor.lloyd(white, BOX, iters=100, k=24).cpu(), cache)
-    return torch.load(cache).to(DEVICE)
+def points_of(kind: str, n: int) -> torch.Tensor:
+    points, _ = common.make_points(kind, n, seed=0, dtype=torch.float32, device=torch.device(DEVICE),
+                                   cache_dir=Path(__file__).resolve().parent / ".cache")
+    return points
 
 
 def apply(setting: str) -> None:
@@ -78,20 +82,15 @@ def kernel_ms(fn) -> dict:
 
 
 def calls_for(kind: str, tag: str) -> dict:
-    n = SIZES[tag]
+    points, k = points_of(kind, SIZES[tag]), FIRST_PASS_K[kind]
+    calls = {f"voronoi {tag} {kind} k={k}": lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")}
     if kind == "blue":
-        points = blue_noise(n, tag)
         box = as_box(points, BOX)
         # Lloyd's late iterations start from points already in grid order.
-        cells, order = _voronoi_in_grid_order(points, box, None, 19)
+        _, order = _voronoi_in_grid_order(points, box, None, 19)
         in_grid_order = points.index_select(0, order)
-        return {
-            f"voronoi {tag} blue k=24": lambda: torchvor.voronoi(points, BOX, k=24, on_failure="flag"),
-            f"lloyd step {tag} k=19": lambda: torchvor.lloyd(in_grid_order, box, iters=1, k=19),
-        }
-    make, k = {"perturbed": (torchvor.samples.perturbed_grid, 48), "white": (torchvor.samples.white_noise, 64)}[kind]
-    points = make(n, seed=1).to(DEVICE)
-    return {f"voronoi {tag} {kind} k={k}": lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")}
+        calls[f"lloyd step {tag} k=19"] = lambda: torchvor.lloyd(in_grid_order, box, iters=1, k=19)
+    return calls
 
 
 def time_calls(calls: dict, settings: list, rounds: int, kernels: bool) -> None:
@@ -131,6 +130,7 @@ def main() -> None:
         for kind in args.kinds.split(","):
             time_calls(calls_for(kind, tag), args.settings, args.rounds, args.kernels)
     apply("default")
+
 
 if __name__ == "__main__":
     main()
