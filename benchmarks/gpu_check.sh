@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|bluek|density|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -38,6 +38,9 @@ for step in "${@:-smoke}"; do
       done ;;
     crossk)  # whole voronoi calls at 1M, thread against warp cells, per kind and first-pass k
       python3 benchmarks/crossover.py --op k 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/crossk.log" ;;
+    kinds)  # thread against warp cells on many kinds of point set, beside the pilot's neighbour statistics
+      python3 benchmarks/crossover.py --op kinds --sizes ${KINDS_SIZES:-1M,10M} 2>&1 \
+        | grep --line-buffered -v -e USDT -e profiler -e _warn_once | tee "$OUT/kinds.log" ;;
     bluek)  # blue noise against first-pass k (0 = the op's pilot)
       python3 benchmarks/bench_voronoi.py --device cuda --kinds blue --sizes ${BLUEK_SIZES:-1M,10M} \
         --k ${BLUEK_K:-0,16,18,20,24} 2>&1 | grep -v USDT | tee "$OUT/bluek.log" ;;

@@ -1175,6 +1175,49 @@ def test_cuda_warps_claim_many_cells(monkeypatch, dtype, gen):
     torch.testing.assert_close(coop.centroid, thread.centroid, rtol=0, atol=rtol * size)
 
 
+def clip_kernels_run(call):
+    """Which clip kernels a CUDA call launched: 'thread' (a thread per cell,
+    CudaExec::for_each_cell) and 'warp' (a warp per cell, for_each_cooperative)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        result = call()
+        torch.cuda.synchronize()
+    names = [event.key for event in prof.key_averages() if "ClipFunctor" in event.key]
+    kinds = {"thread" for name in names if "for_each_claimed_kernel" in name}
+    kinds |= {"warp" for name in names if "for_each_cooperative_claimed_kernel" in name}
+    return result, kinds
+
+
+@pytest.mark.skipif(not has_cuda, reason="needs CUDA")
+@pytest.mark.parametrize("k", [None, 48])
+@pytest.mark.parametrize("kind", ["jittered", "white"])
+def test_cuda_cells_chosen_by_neighbor_spread(dtype, gen, seed, kind, k):
+    """Over more than 16384 cells, CUDA computes a cell by a thread where the
+    cells need about as many neighbours as each other, and by a warp where
+    that varies widely: by the spread (standard deviation / mean) of the
+    neighbours a pilot's ~1000 cells needed (CudaExec::cooperative_cells;
+    0.14 on a jittered grid, 0.29-0.32 on white noise, against 0.25). A
+    caller's k of 40 or more runs that pilot too, whose cells the main pass
+    recomputes. Either way every cell is written and equals the CPU's up to
+    rounding."""
+    n = 100_000
+    if kind == "jittered":
+        points = samples.jittered_grid(n, seed=seed, dtype=dtype)
+    else:
+        points = rand(n, gen, dtype, "cpu")
+    gpu, launched = clip_kernels_run(lambda: torchvor.voronoi(points.cuda(), UNIT, k=k))
+    # The pilot and small retry passes are warps whatever the kind.
+    assert launched == ({"thread", "warp"} if kind == "jittered" else {"warp"})
+    check_global(gpu, points.cuda(), [box_of(points.cuda(), UNIT)], dtype)
+    cpu = torchvor.voronoi(points, UNIT, k=k)
+    assert torch.equal(cpu.status, gpu.status.cpu())
+    rtol = RTOL[dtype]
+    size = float(cpu.volume.double().mean()) ** (1 / 3)
+    torch.testing.assert_close(gpu.volume.cpu(), cpu.volume, rtol=rtol, atol=rtol * size ** 3)
+    torch.testing.assert_close(gpu.centroid.cpu(), cpu.centroid, rtol=0, atol=rtol * size)
+
+
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "duplicates", "batch", "small_k"])
 def test_cpu_cuda_parity(dtype, gen, seed, kind):

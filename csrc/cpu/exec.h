@@ -23,7 +23,10 @@ struct CpuExec {
   // One thread per cell (ConvexCell) and per kNN query: a group of lanes
   // has nothing to share its work with here (the cooperative loops run a
   // group of one lane, for the tests).
-  static bool cooperative_cells(int64_t /*cells*/, int64_t /*k*/) { return false; }
+  static bool cooperative_cells(int64_t /*cells*/, int64_t /*k*/, c10::optional<double> /*neighbor_spread*/) {
+    return false;
+  }
+  static bool cells_need_spread(int64_t /*cells*/, int64_t /*k*/) { return false; }
   static bool cooperative_queries(int64_t /*queries*/) { return false; }
   static bool fits_cooperative_scratch(int64_t /*bytes_per_item*/) { return true; }
 

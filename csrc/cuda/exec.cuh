@@ -174,26 +174,39 @@ struct CudaExec {
   // A pass over few cells (retries, the pilot) takes as long as its slowest
   // cell, and a warp cuts that latency (H100, jittered grid, k=48, clip
   // kernel thread / warp, benchmarks/crossover.py: 1024 cells 0.245 / 0.048
-  // ms, 16384: 0.278 / 0.251, 65536: 0.844 / 0.958). Over many cells, a
-  // thread per cell wins on regular cells (blue noise), and a warp wins on
-  // irregular ones (white noise, perturbed grids): a thread then tests many
-  // neighbours against many vertices one at a time, and the threads of a
-  // warp diverge. The pass's k tells them apart, as the pilot (or Lloyd's
-  // adapted k) picks it from the neighbours the cells need: blue noise gets
-  // 19-24, perturbed grids ~48, white noise ~64. Voronoi wall time at 1M,
-  // thread / warp, H100 (crossover.py --op k, 29b8f20, with the capped grid
-  // of for_each_cell): blue k=24 6.91 / 11.97 ms, k=32 7.40 / 12.52;
-  // perturbed k=48 23.56 / 19.04; white k=64 39.96 / 26.30 (white and
-  // perturbed favour the warp at every k from 24 to 80, by 1.16-1.58x, blue
-  // the thread at every k). From k = 40: a caller's k up to 39 on blue noise
-  // stays on threads, and the pilot's k of both irregular kinds is above.
-  // With warps claiming their cells (d704843) perturbed grids favour the
-  // thread at k 48-56 (16.61 / 17.92 ms at k=48) while white noise still
-  // favours the warp by 1.09-1.27x: k alone cannot tell them apart.
+  // ms, 16384: 0.278 / 0.251, 65536: 0.844 / 0.958).
+  //
+  // Over many cells, a thread per cell wins where the cells need about as
+  // many neighbours as each other, and a warp where that varies widely: the
+  // 32 threads of a warp run until its slowest cell is done, testing
+  // neighbours against vertices one at a time, while a warp cell spreads
+  // each test over its lanes. The spread of the neighbours the pilot's cells
+  // needed (standard deviation / mean, voronoi.h's pilot) tells the two
+  // apart; k does not (perturbed grids and white noise both get k >= 40).
+  // Voronoi wall time, thread / warp, at the pilot's k, H100 (crossover.py
+  // --op kinds, 893643d; spread, ratio at 1M, ratio at 10M):
+  //   Lloyd iterate 4 of white noise 0.158, 0.60; jittered grid 0.35 0.190,
+  //   0.79; Lloyd iterate 1 0.228 / 0.215, 0.88 / 0.84; perturbed grid
+  //   0.238 / 0.224, 0.97 / 0.97; jittered 0.6 0.258 / 0.239, 1.06 / 1.06;
+  //   jittered 0.8 0.278 / 0.268, 1.17 / 1.14; white noise 0.294 / 0.291,
+  //   1.34 / 1.22; clusters 0.308-0.318, 1.55-2.33 at 1M.
+  // Near 0.25 the two differ by a few percent either way.
+  // Without a spread (no pilot ran: a caller's k below 40, which
+  // cells_need_spread leaves to k) k decides: from 40, warps, as the
+  // irregular kinds' k is above and blue noise's (19-24) below.
   static constexpr int64_t kCooperativeCellsUpTo = 16384;
   static constexpr int64_t kCooperativeCellsFromK = 40;
-  static bool cooperative_cells(int64_t cells, int64_t k) {
-    return cells <= kCooperativeCellsUpTo || k >= kCooperativeCellsFromK;
+  static constexpr double kCooperativeCellsFromSpread = 0.25;
+  static bool cooperative_cells(int64_t cells, int64_t k, c10::optional<double> neighbor_spread) {
+    if (cells <= kCooperativeCellsUpTo) return true;
+    if (neighbor_spread.has_value()) return *neighbor_spread >= kCooperativeCellsFromSpread;
+    return k >= kCooperativeCellsFromK;
+  }
+  // Whether a pass with the caller's k would be decided by k alone, where a
+  // pilot's spread would decide better (the ~0.2 ms pilot then runs: the
+  // cells it chooses between take 15 ms or more at 1M).
+  static bool cells_need_spread(int64_t cells, int64_t k) {
+    return cells > kCooperativeCellsUpTo && k >= kCooperativeCellsFromK;
   }
 
   // functor(i, lanes, arrays): the 32 lanes of a warp (core::WarpLanes) per

@@ -11,6 +11,7 @@
 #include <ATen/ATen.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstddef>
 #include <cstdlib>
 #include <cstring>
@@ -271,7 +272,7 @@ template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
-                bool rows_by_step, PositionOutputs& out) {
+                bool rows_by_step, c10::optional<double> neighbor_spread, PositionOutputs& out) {
   ClipFunctor<io_t, T, MAX_PLANES> functor{
       points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
       batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
@@ -282,13 +283,15 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       rows_by_step,                   out.data<io_t>(),
       out.status.data_ptr<int8_t>()};
   // One thread per cell (ConvexCell) or a group of lanes per cell
-  // (CooperativeCell): the backend chooses by the pass's size and k, and
-  // TORCHVOR_CELLS=thread|cooperative overrides it (use_cooperative).
+  // (CooperativeCell): the backend chooses by the pass's size, k and the
+  // pilot's neighbour spread, and TORCHVOR_CELLS=thread|cooperative
+  // overrides it (use_cooperative).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor);
-  } else if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1)))) {
+  } else if (use_cooperative("TORCHVOR_CELLS",
+                                    Exec::cooperative_cells(cells.size(0), neighbors.size(1), neighbor_spread))) {
     Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
                                                                                           functor);
   } else {
@@ -299,11 +302,13 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
 template <typename Exec, typename io_t, typename T>
 void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                     const at::Tensor& neighbors, int tier, PositionOutputs& out) {
+                     const at::Tensor& neighbors, int tier, c10::optional<double> neighbor_spread,
+                     PositionOutputs& out) {
+  constexpr bool column_major = Exec::kColumnMajorNeighbors;
   switch (tier) {
-    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
-    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
-    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors, 0, false, out); break;
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, column_major, 0, false, neighbor_spread, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, column_major, 0, false, neighbor_spread, out); break;
+    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, column_major, 0, false, neighbor_spread, out); break;
   }
 }
 
@@ -323,7 +328,7 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
   part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
       cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
-      /*band_widenings=*/6, /*rows_by_step=*/true, part);
+      /*band_widenings=*/6, /*rows_by_step=*/true, /*neighbor_spread=*/c10::nullopt, part);
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
   out.status.index_copy_(0, rows, part.status.to(out.status.device()));
@@ -333,7 +338,8 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
 template <typename Exec, typename io_t>
 void run_pass(const at::Tensor& points, const at::Tensor& box,
               const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
-              const PassSettings& pass, int64_t memory_budget, PositionOutputs& out) {
+              const PassSettings& pass, c10::optional<double> neighbor_spread, int64_t memory_budget,
+              PositionOutputs& out) {
   TORCH_CHECK(cells.is_contiguous(), "torchvor: internal error: cell list not contiguous");
   // The budget holds the chunk's neighbour ids. Chunks of equal size: a
   // small last chunk would leave most of the GPU idle while its few cells
@@ -356,27 +362,44 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
       clip_chunk_double_double<io_t>(points, box, batch, part, neighbors,
                                      Exec::kColumnMajorNeighbors, out);
     } else if (pass.precision == Precision::kFloat64 || std::is_same<io_t, double>::value) {
-      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, out);
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, neighbor_spread, out);
     } else {
-      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, out);
+      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, neighbor_spread, out);
     }
   }
 }
 
-// First-pass k measured on a pilot: about 1000 cells spread over the grid
-// order, computed with k = 64 (white noise's 90th percentile is ~61; a larger
-// pilot k costs latency: on an H200 the pilot at k = 96 took ~1 ms of a 12 ms
-// call). The 90th percentile of the neighbours they needed (plus a little)
-// makes most cells succeed in one pass and the rest retry cheaply.
+// What a pilot measures: about 1000 cells spread over the grid order,
+// computed with k = 64 (white noise's 90th percentile is ~61; a larger
+// pilot k costs latency: on an H200 the pilot at k = 96 took ~1 ms of a 12
+// ms call), and the neighbours they needed:
+// - `k`, their 90th percentile plus a little: the first pass's k when the
+//   caller gives none. Most cells then succeed in one pass and the rest
+//   retry cheaply.
+// - `neighbor_spread`, their standard deviation over their mean (each capped
+//   at the pilot's k, as a cell that fails there reports it): how unequal
+//   the cells' work is, by which the backend chooses a thread or a warp per
+//   cell (Exec::cooperative_cells).
+struct Pilot {
+  int64_t k;
+  double neighbor_spread;
+};
+
 template <typename Exec, typename io_t, typename Run>
-int64_t pilot_k(const at::Tensor& positions, int64_t largest_cloud, const Run& run, PositionOutputs& out) {
+Pilot run_pilot(const at::Tensor& positions, int64_t largest_cloud, const Run& run, PositionOutputs& out) {
   const int64_t n = positions.size(0);
   const int64_t stride = std::max<int64_t>(1, n / 1024);
   const at::Tensor sample = positions.slice(0, 0, n, stride).contiguous();
-  run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput});
+  run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput}, c10::nullopt);
   const at::Tensor needed = out.num_neighbors<io_t>().index_select(0, sample).to(at::kFloat);
-  const int64_t p90 = static_cast<int64_t>(at::quantile(needed, 0.9).item<float>());
-  return std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2));
+  // One read: the 90th percentile, the mean and the standard deviation.
+  const at::Tensor read = at::cat({at::quantile(needed, 0.9).reshape({1}), needed.mean().reshape({1}),
+                                   needed.std().reshape({1})}).to(at::kCPU);
+  const float* value = read.data_ptr<float>();
+  const int64_t p90 = static_cast<int64_t>(value[0]);
+  // A sample of one cell has no standard deviation (NaN): call it even.
+  const double spread = (value[1] > 0 && std::isfinite(value[2])) ? double(value[2]) / value[1] : 0.0;
+  return {std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2)), spread};
 }
 
 // The passes of voronoi_forward on checked inputs; `bounds` is point_bounds()
@@ -415,8 +438,8 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
                                    : c10::nullopt;
   };
-  const auto run = [&](const at::Tensor& cells, const PassSettings& pass) {
-    run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, memory_budget, out);
+  const auto run = [&](const at::Tensor& cells, const PassSettings& pass, c10::optional<double> neighbor_spread) {
+    run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, neighbor_spread, memory_budget, out);
   };
   // The grid's density follows k (points_per_cell_for). Without k, the pilot
   // runs on the density of k = 32 and the grid is rebuilt when the measured
@@ -427,15 +450,21 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   const double first_points_per_cell = points_per_cell_for(k_in.value_or(32));
   sort_into_grid(first_points_per_cell);
   int64_t k = k_in.value_or(0);
+  c10::optional<double> neighbor_spread;  // from the pilot, where one runs
   if (!k_in.has_value()) {
-    k = pilot_k<Exec, io_t>(positions, largest_cloud, run, out);
+    const Pilot pilot = run_pilot<Exec, io_t>(positions, largest_cloud, run, out);
+    k = pilot.k;
+    neighbor_spread = pilot.neighbor_spread;
     if (points_per_cell_for(k) >= 1.5 * first_points_per_cell) sort_into_grid(points_per_cell_for(k));
+  } else if (Exec::cells_need_spread(n, std::min(k, largest_cloud))) {
+    // The caller's k leaves the backend's choice of cells to the spread.
+    neighbor_spread = run_pilot<Exec, io_t>(positions, largest_cloud, run, out).neighbor_spread;
   }
   PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
   at::Tensor pending = positions;
   const bool is_double = points.scalar_type() == at::kDouble;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
-    run(pending, pass);
+    run(pending, pass, neighbor_spread);
     // Which status codes this pass produced and which cells failed, in one
     // read (one device sync). The failed cells come in no set order (the
     // scan appends them as it finds them); each cell's result does not
