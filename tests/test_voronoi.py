@@ -1135,18 +1135,19 @@ def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
 
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("blocks_per_sm", ["1", "1000"])
-def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_per_sm):
+@pytest.mark.parametrize("k", [24, 48])
+def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_per_sm, k):
     """On CUDA, one thread per cell runs on a capped grid, each warp claiming
-    32 cells at a time from a counter (CudaExec::for_each_cell);
-    TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap. One block an SM (every
-    warp claims several times) and
-    more than fit (clamped to what the SM holds) give the default's cells,
-    bit for bit, and none is left unwritten."""
+    32 cells at a time from a counter (CudaExec::for_each_cell), capped
+    lower from k = 28; TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap. One
+    block an SM (every warp claims several times) and more than fit
+    (clamped to what the SM holds) give the default's cells, bit for bit,
+    and none is left unwritten."""
     points = rand(40000, gen, dtype, "cuda")
     monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, the retries too
-    default = torchvor.voronoi(points, UNIT, k=24)
+    default = torchvor.voronoi(points, UNIT, k=k)
     monkeypatch.setenv("TORCHVOR_CELL_BLOCKS_PER_SM", blocks_per_sm)
-    capped = torchvor.voronoi(points, UNIT, k=24)
+    capped = torchvor.voronoi(points, UNIT, k=k)
     check_global(capped, points, [box_of(points, UNIT)], dtype)
     for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
         assert torch.equal(getattr(default, name), getattr(capped, name)), name

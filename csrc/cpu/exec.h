@@ -62,7 +62,7 @@ struct CpuExec {
   // (isa.h), where a * b + c may round once, as on the GPU. Not for code that
   // relies on separately rounded products (double-double's Dekker split).
   template <typename Functor>
-  static void for_each_cell(int64_t n, const Functor& functor) {
+  static void for_each_cell(int64_t n, int64_t /*k*/, const Functor& functor) {
     const Isa isa = cpu_isa();
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       run_range(isa, begin, end, functor);

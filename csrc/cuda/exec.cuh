@@ -272,14 +272,25 @@ struct CudaExec {
   // size, cudaFuncGetAttributes), the frames stay in cache. 1M blue noise,
   // k=24, H100: blocks of 128 an SM 8 (the full residency) / 6 / 4 / 3 / 2 /
   // 1: clip kernel 7.79 / 6.38 / 4.67 / 4.49 / 5.33 / 8.42 ms.
+  // Cells that need more neighbours grow more vertices and touch more of
+  // their frame: from a pass's k of kLargeCellsFromK, three quarters of
+  // those blocks (rounded; measured in float32 only, 4 -> 3 blocks). Voronoi
+  // wall time, thread cells, blocks 4 / 3 an SM, H100 (a23ea16): 10M
+  // perturbed grid k=48 150.5 / 142.3 ms (2 blocks: 148.9), jittered grid
+  // 0.45 k=41 141.2 / 132.3; 1M jittered 0.25 k=28 10.37 / 9.65, Lloyd
+  // iterate 2 of white noise k=30 11.17 / 10.45, perturbed k=43 18.31 /
+  // 17.42; but blue noise k=24 4.56 / 4.67 (10M: 40.3 / 42.0), whose cells
+  // need ~14 neighbours against 23-31 (benchmarks/NOTES.md).
   // TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap (benchmarks).
   // The warps claim 32 cells at a time (for_each_claimed_kernel): with each
   // thread taking cells a grid apart, the kernel waited on its slowest warps'
   // last rounds (10M blue noise, k=24, H100: clip kernel 29.6 -> 28.0 ms).
   static constexpr int64_t kCellFramesPerSm = 1024 * 1024;
+  static constexpr int64_t kLargeCellsFromK = 28;
 
+  // functor(i) for i in [0, n), cells whose pass reads k neighbours each.
   template <typename Functor>
-  static void for_each_cell(int64_t n, const Functor& functor) {
+  static void for_each_cell(int64_t n, int64_t k, const Functor& functor) {
     if (n == 0) return;
     const auto kernel = for_each_claimed_kernel<Functor>;
     // The kernel's frame and the blocks an SM holds depend only on the kernel
@@ -300,6 +311,7 @@ struct CudaExec {
     int device = 0;
     const int64_t sms = sm_count(device);
     int64_t per_sm = kCellFramesPerSm / (kThreads * residency.frame_bytes);
+    if (k >= kLargeCellsFromK) per_sm = (3 * per_sm + 2) / 4;
     if (const char* chosen = std::getenv("TORCHVOR_CELL_BLOCKS_PER_SM")) per_sm = std::atoi(chosen);
     per_sm = std::max<int64_t>(1, std::min<int64_t>(per_sm, residency.most));
     const int64_t blocks = std::min<int64_t>((n + kThreads - 1) / kThreads, sms * per_sm);

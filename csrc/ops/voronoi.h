@@ -295,7 +295,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
     Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
                                                                                           functor);
   } else {
-    Exec::for_each_cell(cells.size(0), functor);
+    Exec::for_each_cell(cells.size(0), neighbors.size(1), functor);
   }
 }
 
