@@ -184,12 +184,12 @@ struct CudaExec {
   // needed (standard deviation / mean, voronoi.h's pilot) tells the two
   // apart; k does not (perturbed grids and white noise both get k >= 40).
   // Voronoi wall time, thread / warp, at the pilot's k, H100 (crossover.py
-  // --op kinds, 893643d; spread, ratio at 1M, ratio at 10M):
-  //   Lloyd iterate 4 of white noise 0.158, 0.60; jittered grid 0.35 0.190,
-  //   0.79; Lloyd iterate 1 0.228 / 0.215, 0.88 / 0.84; perturbed grid
-  //   0.238 / 0.224, 0.97 / 0.97; jittered 0.6 0.258 / 0.239, 1.06 / 1.06;
-  //   jittered 0.8 0.278 / 0.268, 1.17 / 1.14; white noise 0.294 / 0.291,
-  //   1.34 / 1.22; clusters 0.308-0.318, 1.55-2.33 at 1M.
+  // --op kinds, 05fc6fc; spread, ratio at 1M, ratio at 10M): blue noise
+  //   0.097, 0.40; Lloyd iterate 4 of white noise 0.158, 0.59; jittered grid
+  //   0.35 0.190, 0.77; Lloyd iterate 1 0.228 / 0.215, 0.85 / 0.81;
+  //   perturbed grid 0.238 / 0.224, 0.98 / 0.92; jittered 0.6 0.258 /
+  //   0.239, 1.03 / 1.02; jittered 0.8 0.278 / 0.268, 1.09 / 1.08; white
+  //   noise 0.294 / 0.291, 1.20 / 1.16; clusters 0.308-0.318, 1.48-2.32 at 1M.
   // Near 0.25 the two differ by a few percent either way.
   // Without a spread (no pilot ran: a caller's k below 40, which
   // cells_need_spread leaves to k) k decides: from 40, warps, as the
@@ -203,8 +203,9 @@ struct CudaExec {
     return k >= kCooperativeCellsFromK;
   }
   // Whether a pass with the caller's k would be decided by k alone, where a
-  // pilot's spread would decide better (the ~0.2 ms pilot then runs: the
-  // cells it chooses between take 15 ms or more at 1M).
+  // pilot's spread would decide better. The pilot (one pass over ~1000 cells
+  // and a read) then runs; its cost was not measured apart, and the passes
+  // it decides take 15 ms or more at 1M.
   static bool cells_need_spread(int64_t cells, int64_t k) {
     return cells > kCooperativeCellsUpTo && k >= kCooperativeCellsFromK;
   }
@@ -272,15 +273,18 @@ struct CudaExec {
   // size, cudaFuncGetAttributes), the frames stay in cache. 1M blue noise,
   // k=24, H100: blocks of 128 an SM 8 (the full residency) / 6 / 4 / 3 / 2 /
   // 1: clip kernel 7.79 / 6.38 / 4.67 / 4.49 / 5.33 / 8.42 ms.
-  // Cells that need more neighbours grow more vertices and touch more of
-  // their frame: from a pass's k of kLargeCellsFromK, three quarters of
-  // those blocks (rounded; measured in float32 only, 4 -> 3 blocks). Voronoi
-  // wall time, thread cells, blocks 4 / 3 an SM, H100 (a23ea16): 10M
-  // perturbed grid k=48 150.5 / 142.3 ms (2 blocks: 148.9), jittered grid
-  // 0.45 k=41 141.2 / 132.3; 1M jittered 0.25 k=28 10.37 / 9.65, Lloyd
-  // iterate 2 of white noise k=30 11.17 / 10.45, perturbed k=43 18.31 /
-  // 17.42; but blue noise k=24 4.56 / 4.67 (10M: 40.3 / 42.0), whose cells
-  // need ~14 neighbours against 23-31 (benchmarks/NOTES.md).
+  // Passes of cells that need more neighbours run best with fewer threads
+  // resident (likely because such cells grow more vertices and touch more
+  // of their frame; not profiled): from a pass's k of kLargeCellsFromK,
+  // three quarters of those blocks (rounded; measured in float32 only, 4 ->
+  // 3 blocks). Voronoi wall time, thread cells, blocks 4 / 3 an SM, H100
+  // (a23ea16; interleaved: 10M perturbed grid k=48 150.5 / 142.3 ms, 2
+  // blocks 148.9; one after the other: jittered grid 0.45 k=41 141.2 /
+  // 132.3, 1M jittered 0.25 k=28 10.37 / 9.65, Lloyd iterate 2 of white
+  // noise k=30 11.17 / 10.45, perturbed k=43 18.31 / 17.42; against: Lloyd
+  // iterates 1 and 2 at k=48 14.18 / 15.33 and 11.02 / 11.24, and blue noise
+  // k=24 4.56 / 4.67, 10M 40.3 / 42.0, whose cells need ~14 neighbours
+  // against 23-31; benchmarks/NOTES.md).
   // TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap (benchmarks).
   // The warps claim 32 cells at a time (for_each_claimed_kernel): with each
   // thread taking cells a grid apart, the kernel waited on its slowest warps'
