@@ -13,7 +13,8 @@ of one profiled call.
 Calls (--kinds): voronoi on blue noise (k=24) and one Lloyd iteration on it
 (k=19, from points already in Lloyd's grid order, as in late iterations);
 voronoi on a perturbed grid (k=48) and on white noise (k=64), the
-benchmark's first-pass k (bench_voronoi.py). The point sets are the
+benchmark's first-pass k (bench_voronoi.py), or with --pilot the op's default
+k (k=None: its pilot picks it). The point sets are the
 benchmarks' (common.make_points, seed 0; blue noise cached in
 benchmarks/.cache, shared with bench_voronoi.py).
 """
@@ -81,9 +82,9 @@ def kernel_ms(fn) -> dict:
     return out
 
 
-def calls_for(kind: str, tag: str) -> dict:
-    points, k = points_of(kind, SIZES[tag]), FIRST_PASS_K[kind]
-    calls = {f"voronoi {tag} {kind} k={k}": lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")}
+def calls_for(kind: str, tag: str, pilot: bool = False) -> dict:
+    points, k = points_of(kind, SIZES[tag]), (None if pilot else FIRST_PASS_K[kind])
+    calls = {f"voronoi {tag} {kind} k={k or 'pilot'}": lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")}
     if kind == "blue":
         box = as_box(points, BOX)
         # Lloyd's late iterations start from points already in grid order.
@@ -122,13 +123,14 @@ def main() -> None:
     parser.add_argument("--sizes", default="1M,10M")
     parser.add_argument("--kinds", default="blue", help="blue, perturbed, white (comma-separated)")
     parser.add_argument("--kernels", action="store_true")
+    parser.add_argument("--pilot", action="store_true", help="voronoi with the op's default k (its pilot) instead")
     parser.add_argument("--device", default="cuda", help="cpu: a dry run of this script (timed by the host clock)")
     args = parser.parse_args()
     global DEVICE
     DEVICE = args.device
     for tag in args.sizes.split(","):
         for kind in args.kinds.split(","):
-            time_calls(calls_for(kind, tag), args.settings, args.rounds, args.kernels)
+            time_calls(calls_for(kind, tag, args.pilot), args.settings, args.rounds, args.kernels)
     apply("default")
 
 

@@ -291,7 +291,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor);
   } else if (use_cooperative("TORCHVOR_CELLS",
-                                    Exec::cooperative_cells(cells.size(0), neighbors.size(1), neighbor_spread))) {
+                             Exec::cooperative_cells(cells.size(0), neighbors.size(1), neighbor_spread))) {
     Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
                                                                                           functor);
   } else {
@@ -373,8 +373,8 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
 // computed with k = 64 (white noise's 90th percentile is ~61; a larger
 // pilot k costs latency: on an H200 the pilot at k = 96 took ~1 ms of a 12
 // ms call), and the neighbours they needed:
-// - `k`, their 90th percentile plus a little: the first pass's k when the
-//   caller gives none. Most cells then succeed in one pass and the rest
+// - `k`, their 90th percentile (pilot_quantile) plus a little: the first
+//   pass's k when the caller gives none. Most cells then succeed in one pass and the rest
 //   retry cheaply.
 // - `neighbor_spread`, their standard deviation over their mean (each capped
 //   at the pilot's k, as a cell that fails there reports it): how unequal
@@ -385,6 +385,14 @@ struct Pilot {
   double neighbor_spread;
 };
 
+// The share of the pilot's cells that the first pass's k covers: 0.9, or
+// TORCHVOR_PILOT_QUANTILE in (0, 1] (benchmarks).
+inline double pilot_quantile() {
+  const char* chosen = std::getenv("TORCHVOR_PILOT_QUANTILE");
+  const double quantile = chosen != nullptr ? std::atof(chosen) : 0.9;
+  return (quantile > 0.0 && quantile <= 1.0) ? quantile : 0.9;
+}
+
 template <typename Exec, typename io_t, typename Run>
 Pilot run_pilot(const at::Tensor& positions, int64_t largest_cloud, const Run& run, PositionOutputs& out) {
   const int64_t n = positions.size(0);
@@ -392,14 +400,14 @@ Pilot run_pilot(const at::Tensor& positions, int64_t largest_cloud, const Run& r
   const at::Tensor sample = positions.slice(0, 0, n, stride).contiguous();
   run(sample, PassSettings{std::min<int64_t>(64, largest_cloud), 0, Precision::kInput}, c10::nullopt);
   const at::Tensor needed = out.num_neighbors<io_t>().index_select(0, sample).to(at::kFloat);
-  // One read: the 90th percentile, the mean and the standard deviation.
-  const at::Tensor read = at::cat({at::quantile(needed, 0.9).reshape({1}), needed.mean().reshape({1}),
+  // One read: the quantile, the mean and the standard deviation.
+  const at::Tensor read = at::cat({at::quantile(needed, pilot_quantile()).reshape({1}), needed.mean().reshape({1}),
                                    needed.std().reshape({1})}).to(at::kCPU);
   const float* value = read.data_ptr<float>();
-  const int64_t p90 = static_cast<int64_t>(value[0]);
+  const int64_t covered = static_cast<int64_t>(value[0]);
   // A sample of one cell has no standard deviation (NaN): call it even.
   const double spread = (value[1] > 0 && std::isfinite(value[2])) ? double(value[2]) / value[1] : 0.0;
-  return {std::min<int64_t>(256, std::max<int64_t>(8, p90 + 2)), spread};
+  return {std::min<int64_t>(256, std::max<int64_t>(8, covered + 2)), spread};
 }
 
 // The passes of voronoi_forward on checked inputs; `bounds` is point_bounds()
