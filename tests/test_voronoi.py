@@ -1130,6 +1130,28 @@ def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
     assert torch.equal(default_knn.dist2, knn.dist2)
 
 
+@pytest.mark.parametrize("quantile", ["0.5", "1", "2", "nonsense"])
+def test_pilot_quantile_changes_no_result(monkeypatch, device, dtype, gen, quantile):
+    """TORCHVOR_PILOT_QUANTILE (benchmarks/ab_env.py) sets the share of the
+    pilot's cells that the default first-pass k covers (0.98; values outside
+    (0, 1] keep it). Another k retries other cells, but each cell stops at the
+    same neighbour: the same cells, bit for bit in float64 (in float32 the
+    grid follows k, and equally far neighbours may be clipped in another
+    order, as in test_grid_density_changes_no_result)."""
+    points = rand(5000, gen, dtype, device)
+    default_cells = torchvor.voronoi(points, UNIT)
+    monkeypatch.setenv("TORCHVOR_PILOT_QUANTILE", quantile)
+    cells = torchvor.voronoi(points, UNIT)
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+    for name in ("status", "neighbors"):
+        assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
+    for name in ("volume", "centroid", "second_moment"):
+        if dtype == torch.float64:
+            assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
+        else:
+            torch.testing.assert_close(getattr(cells, name), getattr(default_cells, name), rtol=1e-5, atol=0)
+
+
 # -------------------------------------------------------- CPU / CUDA parity
 
 
