@@ -1102,7 +1102,7 @@ def test_compile_voronoi(device, dtype, gen):
             torch.testing.assert_close(a, b)
 
 
-def assert_same_cells(cells, default_cells, dtype):
+def assert_cells_unchanged(cells, default_cells, dtype):
     """The same statuses and neighbour counts; the integrals bit for bit in
     float64, up to a summation order in float32 (equally far neighbours
     clipped in another order)."""
@@ -1132,7 +1132,7 @@ def test_grid_density_changes_no_result(monkeypatch, device, dtype, gen, scale):
     cells = torchvor.voronoi(points, UNIT, k=24)
     knn = torchvor.knn(points, 16)
     check_global(cells, points, [box_of(points, UNIT)], dtype)
-    assert_same_cells(cells, default_cells, dtype)
+    assert_cells_unchanged(cells, default_cells, dtype)
     assert torch.equal(default_knn.idx, knn.idx)
     assert torch.equal(default_knn.dist2, knn.dist2)
 
@@ -1150,7 +1150,7 @@ def test_pilot_quantile_changes_no_result(monkeypatch, device, dtype, gen, quant
     monkeypatch.setenv("TORCHVOR_PILOT_QUANTILE", quantile)
     cells = torchvor.voronoi(points, UNIT)
     check_global(cells, points, [box_of(points, UNIT)], dtype)
-    assert_same_cells(cells, default_cells, dtype)
+    assert_cells_unchanged(cells, default_cells, dtype)
 
 
 # -------------------------------------------------------- CPU / CUDA parity
