@@ -1,6 +1,7 @@
 """Clip kernel time against how many blocks of one-thread-per-cell clipping
 stay resident on an SM (TORCHVOR_CELL_BLOCKS_PER_SM; CudaExec::for_each_cell
-picks a default from the kernel's stack frame). CUDA only.
+picks a default from the kernel's stack frame and the pass's k: three
+quarters as many from k = 28). CUDA only.
 
     python benchmarks/sweep_cell_residency.py [--blocks 1,2,3,4,5,6,8] [--sizes 1M,10M]  (default 1M)
 
