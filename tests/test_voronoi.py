@@ -41,8 +41,14 @@ def ragged_batch(sizes, device):
 def assert_same_cells(cells, expected, dtype):
     """The same statuses and neighbour counts, and the same integrals up to
     rounding (relative, or absolute at the scale of the mean cell)."""
-    assert torch.equal(expected.status, cells.status)
     assert torch.equal(expected.neighbors, cells.neighbors)
+    assert_same_integrals(cells, expected, dtype)
+
+
+def assert_same_integrals(cells, expected, dtype):
+    """The same statuses, and the same integrals up to rounding, whatever
+    neighbours the cells counted (assert_same_cells without them)."""
+    assert torch.equal(expected.status, cells.status)
     rtol = RTOL[dtype]
     size = float(expected.volume.double().mean()) ** (1 / 3)
     torch.testing.assert_close(cells.volume, expected.volume, rtol=rtol, atol=rtol * size ** 3)
@@ -199,6 +205,18 @@ def cells_impl(request, monkeypatch):
     return request.param
 
 
+@pytest.fixture(params=["past 128", "every retry"])
+def vertex_balls(request, monkeypatch):
+    """The most neighbours a retry asks for (TORCHVOR_VERTEX_BALLS_K): cells
+    that need more are finished on the grid by the empty balls of their
+    vertices, from a list of that many. By default 128; with 1, every cell a
+    retry takes is finished so, from its nearest neighbour alone. The tests
+    that take this fixture run both."""
+    if request.param == "every retry":
+        monkeypatch.setenv("TORCHVOR_VERTEX_BALLS_K", "1")
+    return request.param
+
+
 def run(points, box=None, **kwargs):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a RuntimeWarning (failed cell) fails the test
@@ -318,9 +336,12 @@ def test_cpu_baseline_loop_vs_oracle(monkeypatch, dtype, gen, seed, kind):
     torch.testing.assert_close(baseline.centroid, best.centroid, rtol=0, atol=RTOL[dtype] * size)
 
 
-def test_neighbors_radius_of_security(device, gen):
+def test_neighbors_radius_of_security(monkeypatch, device, gen):
     """`neighbors` counts the nearest neighbours a cell used: every true Voronoi
-    neighbour is among them, and the next one is beyond twice the cell radius."""
+    neighbour is among them, and the next one is beyond twice the cell radius.
+    (Of the cells that the radius of security finishes: here all of them, as
+    no retry finishes its cells by their vertices' balls.)"""
+    monkeypatch.setenv("TORCHVOR_VERTEX_BALLS_K", str(10 ** 9))
     points = rand(600, gen, torch.float64, device)
     cells = run(points, UNIT)
     p = points.cpu().numpy()
@@ -426,7 +447,7 @@ def tight_clusters(gen, spread):
 
 
 @pytest.mark.parametrize("spread", [1e-3, 1e-5, 1e-6])
-def test_tight_clusters(device, dtype, gen, spread, cells_impl):
+def test_tight_clusters(device, dtype, gen, spread, cells_impl, vertex_balls):
     """Clusters of 40 points with Gaussian spread 1e-3 .. 1e-6 (far above the
     float64 resolution; 1e-6 is ~16 float32 ulps). The clusters' outer cells are
     needles (~1e-5 wide, ~0.1 long) whose faces float32 fixes only to about
@@ -623,7 +644,7 @@ def test_coplanar_points_bounding_box(device, dtype, gen):
 
 @pytest.mark.parametrize("box", [([-1.0, 0.0, 0.2], [2.0, 1.5, 0.7]), ([-100.0] * 3, [100.0] * 3)],
                          ids=["near", "huge"])
-def test_explicit_larger_box(device, dtype, gen, box):
+def test_explicit_larger_box(device, dtype, gen, box, vertex_balls):
     """A box well beyond the points: hull cells reach the box and need (almost) all
     points. In the huge box they are cones ~100 long whose faces come from points
     ~0.03 apart: float32 gets the conditioning allowance of test_tight_clusters
@@ -659,7 +680,7 @@ def test_large_offset_box(device, dtype, gen):
         check_against_oracle(cells, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype])
 
 
-def test_duplicates(device, dtype, gen, cells_impl):
+def test_duplicates(device, dtype, gen, cells_impl, vertex_balls):
     """Exact copies: the lowest index keeps the whole cell; later copies are
     DUPLICATE with volume 0, centroid = the point and second moment 0."""
     base = rand(200, gen, dtype, "cpu")
@@ -724,7 +745,7 @@ def test_all_points_identical(device, dtype, cells_impl):
 # ------------------------------------------------------------------------ batch
 
 
-def test_batch_per_cloud_boxes(device, dtype, gen, cells_impl):
+def test_batch_per_cloud_boxes(device, dtype, gen, cells_impl, vertex_balls):
     sizes = [300, 1, 0, 150, 2]
     batch = ragged_batch(sizes, device)
     los = torch.tensor([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0], [0.0, 0.0, 0.0], [-2.0, 1.0, 0.0], [0.0, 0.0, 10.0]],
@@ -743,8 +764,14 @@ def test_batch_per_cloud_boxes(device, dtype, gen, cells_impl):
             part = points[start:start + s]
             sub = run(part, torch.stack([torch.as_tensor(lohi[0]), torch.as_tensor(lohi[1])]).to(dtype).to(device))
             # each cloud is its own diagram: same as computing it alone
-            for a, b in zip(cells, sub):
-                assert torch.equal(a[start:start + s], b)
+            if vertex_balls == "every retry":
+                # which cells a retry takes follows the first pass's k, the
+                # pilot's, which follows the whole batch; the vertex balls
+                # clip in another order than the radius of security
+                assert_same_integrals(type(sub)(*(a[start:start + s] for a in cells)), sub, dtype)
+            else:
+                for a, b in zip(cells, sub):
+                    assert torch.equal(a[start:start + s], b)
             check_against_oracle(sub, part, lohi, pick_cells(part, 25, gen, *lohi), RTOL[dtype], tag=f"cloud@{start}")
         start += s
 
@@ -792,7 +819,7 @@ def test_batch_single_cloud_box_shapes(device, dtype, gen):
 # ------------------------------------------------------ recovery and chunking
 
 
-def test_small_k_recovery(device, dtype, gen, cells_impl):
+def test_small_k_recovery(device, dtype, gen, cells_impl, vertex_balls):
     """k=4 is far too few for any cell: the retry passes must give the exact cells."""
     points = rand(800, gen, dtype, device)
     cells = run(points, UNIT, k=4)
@@ -804,6 +831,44 @@ def test_small_k_recovery(device, dtype, gen, cells_impl):
     # same cells as with the default k (integrals agree to rounding)
     torch.testing.assert_close(cells.volume, ref.volume, rtol=RTOL[dtype], atol=0)
     assert torch.equal(cells.status, ref.status)
+
+
+def test_clusters_with_voids(monkeypatch, device, dtype, seed, gen):
+    """Dense clusters with empty space between them: the cells at a cluster's
+    edge reach far into the void, and the radius of security would ask for
+    every point within twice their farthest vertex, whole clusters. Past 128
+    neighbours a retry finishes them by the empty balls of their vertices
+    instead (core::clip_by_vertex_balls): the exact cells, the largest ones
+    (in the voids) checked against the oracle, and the same cells, up to
+    rounding, as asking for neighbours until the radius of security holds."""
+    points = samples.clustered(3000, clusters=20, spread=0.02, seed=seed, dtype=torch.float64).to(dtype).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    largest = torch.argsort(cells.volume.cpu(), descending=True)[:15].numpy()
+    subset = np.unique(np.concatenate([largest, pick_cells(points, 25, gen, *lohi)]))
+    check_against_oracle(cells, points, lohi, subset, RTOL[dtype])
+    monkeypatch.setenv("TORCHVOR_VERTEX_BALLS_K", str(10 ** 9))
+    by_radius = run(points, UNIT)
+    assert int(by_radius.neighbors.max()) > 1000  # what the vertex balls spared
+    assert_same_integrals(cells, by_radius, dtype)
+
+
+@pytest.mark.parametrize("most", ["1", "8", "0", "-3", "8x"])
+def test_vertex_balls_k_changes_no_cell(monkeypatch, device, dtype, gen, most):
+    """TORCHVOR_VERTEX_BALLS_K sets the most neighbours a retry asks for
+    before it finishes its cells by their vertices' balls (values that are
+    not an integer >= 1 keep the default, 128). Either way the cells are
+    exact: the same statuses and integrals up to rounding (the planes come
+    in another order); only `neighbors` counts other work."""
+    points = rand(4000, gen, dtype, device)
+    default = run(points, UNIT, k=6)
+    monkeypatch.setenv("TORCHVOR_VERTEX_BALLS_K", most)
+    cells = run(points, UNIT, k=6)
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+    assert_same_integrals(cells, default, dtype)
+    if most in ("1", "8"):
+        assert not torch.equal(cells.neighbors, default.neighbors)
 
 
 @pytest.mark.parametrize("k", [1, 2, 10000])

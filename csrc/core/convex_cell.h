@@ -399,6 +399,7 @@ struct ConvexCell {
   using Scalar = T;
   using Lanes = SingleLane;  // one thread computes the cell
   static constexpr bool kTetrahedronStart = true;  // init_tetrahedron (start_tetrahedron)
+  static constexpr bool kVertexBalls = true;       // vertex_count, vertex (vertex_balls.h)
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
@@ -471,6 +472,54 @@ struct ConvexCell {
     const Vec3<T> position = intersect_planes(pa, pb, pc);
     triangle[t] = {position, pack(a, b, c)};
     return {position, squared_norm(position)};
+  }
+
+  // The cell's vertices (clip_by_vertex_balls sweeps their balls).
+  TV_HD int vertex_count() const { return num_triangles; }
+  TV_HD Vec3<T> vertex(int t) const { return triangle[t].position; }
+  static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;
+  // Whether the bisector of the neighbour at r is among the cell's planes. A
+  // second clip by it is not a no-op: its own vertices, rounded, may fall
+  // outside it, and the new ones would meet it twice (a NaN vertex).
+  TV_HD bool has_bisector(Vec3<T> r) const {
+    for (int q = kBoxPlanes; q < num_planes; ++q) {
+      const Vec3<T> other = neighbor[q - kBoxPlanes];
+      if (other.x == r.x && other.y == r.y && other.z == r.z) return true;
+    }
+    return false;
+  }
+  // The neighbours (relative to the seed) whose bisectors bound the cell (a
+  // vertex lies on them) and that are at least sqrt(nearest2) away, with
+  // their squared distances, in increasing (distance, x, y, z) order: at
+  // most kMaxBisectors. Returns how many.
+  TV_HD int bounding_neighbors(T nearest2, Vec3<T>* r, T* r2) const {
+    PlaneSet used;
+    used.clear();
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t corners = triangle[t].corners;
+      for (int e = 0; e < 3; ++e) used.set(corner(corners, e));
+    }
+    const auto before = [](T a2, Vec3<T> a, T b2, Vec3<T> b) {
+      if (a2 < b2 || b2 < a2) return a2 < b2;
+      if (a.x < b.x || b.x < a.x) return a.x < b.x;
+      if (a.y < b.y || b.y < a.y) return a.y < b.y;
+      return a.z < b.z;
+    };
+    int count = 0;
+    for (int q = kBoxPlanes; q < num_planes; ++q) {
+      if (!used.test(q)) continue;
+      const Vec3<T> offset = neighbor[q - kBoxPlanes];
+      const T offset2 = squared_norm(offset);
+      if (offset2 < nearest2) continue;
+      int at = count++;  // insertion sort: a few dozen at most
+      for (; at > 0 && before(offset2, offset, r2[at - 1], r[at - 1]); --at) {
+        r[at] = r[at - 1];
+        r2[at] = r2[at - 1];
+      }
+      r[at] = offset;
+      r2[at] = offset2;
+    }
+    return count;
   }
 
   // Whether no neighbour this far (or farther) can cut the cell.

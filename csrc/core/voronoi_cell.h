@@ -3,6 +3,7 @@
 
 #include "convex_cell.h"
 #include "cooperative_cell.h"
+#include "vertex_balls.h"
 
 namespace torchvor {
 namespace core {
@@ -71,98 +72,120 @@ struct NeighborReader {
 // and computed in T (T may be wider, for the float64 recovery pass).
 // `Cell` is a ConvexCell (one thread) or a CooperativeCell (a group of lanes,
 // each of which runs this function with the same arguments).
+// With `vertex_balls` (a Cell with kVertexBalls), a cell whose list runs out
+// before the radius of security is finished by the empty-ball test of its
+// vertices on that grid (finish_by_vertex_balls) instead of failing; its
+// `neighbors` then counts the list and the further neighbours that bound it.
 template <typename Cell, typename io_t, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed_index,
                                     const int32_t* neighbors, int64_t stride, int32_t k,
                                     const io_t* box, T relative_tolerance, int band_widenings,
-                                    bool tetrahedron_start = true) {
+                                    bool tetrahedron_start = true,
+                                    const VertexBallGrid<io_t>* vertex_balls = nullptr) {
   const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
                         T(points[3 * seed_index + 2])};
   const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
   const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
   NeighborReader<typename Cell::Lanes, io_t, T> reader{cell.group(), points, neighbors, stride, k, seed};
-  // The first cell: the tetrahedron of four of the first neighbours where
-  // they surround the seed inside the box, else the box (start_choice,
-  // start_tetrahedron). A cell type without kTetrahedronStart, or
-  // `tetrahedron_start` false, always starts from the box. Neither a missing
-  // neighbour nor a duplicate of the seed may be among the four. The chosen
-  // ones are read again rather than kept: the registers hold only their
-  // directions meanwhile.
-  uint32_t used_by_start = 0u;  // bit n: neighbour n bounds the start tetrahedron
-  if constexpr (Cell::kTetrahedronStart) {
-    using S = typename ChoiceScalar<T>::type;
-    StartChoice choice;
-    choice.found = false;
-    if (tetrahedron_start && k >= kStartCandidates) {
-      Vec3<S> unit[kStartCandidates];
-      bool usable = true;
-      TV_UNROLL
-      for (int n = 0; n < kStartCandidates; ++n) {
-        int32_t j;
-        Vec3<T> r;
-        reader.read(n, j, r);
-        const Vec3<S> direction = {S(r.x), S(r.y), S(r.z)};
-        const S length2 = squared_norm(direction);
-        usable = usable && j >= 0 && length2 > S(0);
-        const S inverse_length = S(1) / sqrt_of(length2);
-        unit[n] = {direction.x * inverse_length, direction.y * inverse_length, direction.z * inverse_length};
-      }
-      if (usable) choice = start_choice(unit);
-    }
-    if (choice.found) {
-      Vec3<T> offset[4];
-      int32_t j;
-      reader.read(0, j, offset[0]);
-      reader.read(choice.b, j, offset[1]);
-      reader.read(choice.c, j, offset[2]);
-      reader.read(choice.d, j, offset[3]);
-      const StartTetrahedron<T> start = start_tetrahedron(offset, choice.positive, lo - seed, hi - seed);
-      if (start.found) {
-        cell.init_tetrahedron(lo - seed, hi - seed, start, relative_tolerance, band_widenings);
-        used_by_start = choice.used();
-      }
-    }
-  }
-  if (used_by_start == 0u) cell.init_box(lo - seed, hi - seed, relative_tolerance, band_widenings);
-
   CellIntegrals<T> out;
-  out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
-  out.neighbors = k;
-  Vec3<T> previous = {T(0), T(0), T(0)};
-  for (int32_t n = 0; n < k; ++n) {
-    int32_t j;
-    Vec3<T> r;  // the neighbour relative to the seed
-    reader.read(n, j, r);
-    if (j < 0) {  // every point of the batch element has been used
-      out.status = kSuccess;
-      out.neighbors = n;
-      break;
+  T listed_dist2 = T(0);  // the last listed neighbour's
+  // The first cell and the clips by the list, until the radius of security
+  // or the list's end (out.status, out.neighbors). A lambda: the cells that
+  // are finished on the grid run it again (finish_by_vertex_balls).
+  const auto start_and_clip_list = [&]() {
+    // The first cell: the tetrahedron of four of the first neighbours where
+    // they surround the seed inside the box, else the box (start_choice,
+    // start_tetrahedron). A cell type without kTetrahedronStart, or
+    // `tetrahedron_start` false, always starts from the box. Neither a missing
+    // neighbour nor a duplicate of the seed may be among the four. The chosen
+    // ones are read again rather than kept: the registers hold only their
+    // directions meanwhile.
+    uint32_t used_by_start = 0u;  // bit n: neighbour n bounds the start tetrahedron
+    if constexpr (Cell::kTetrahedronStart) {
+      using S = typename ChoiceScalar<T>::type;
+      StartChoice choice;
+      choice.found = false;
+      if (tetrahedron_start && k >= kStartCandidates) {
+        Vec3<S> unit[kStartCandidates];
+        bool usable = true;
+        TV_UNROLL
+        for (int n = 0; n < kStartCandidates; ++n) {
+          int32_t j;
+          Vec3<T> r;
+          reader.read(n, j, r);
+          const Vec3<S> direction = {S(r.x), S(r.y), S(r.z)};
+          const S length2 = squared_norm(direction);
+          usable = usable && j >= 0 && length2 > S(0);
+          const S inverse_length = S(1) / sqrt_of(length2);
+          unit[n] = {direction.x * inverse_length, direction.y * inverse_length, direction.z * inverse_length};
+        }
+        if (usable) choice = start_choice(unit);
+      }
+      if (choice.found) {
+        Vec3<T> offset[4];
+        int32_t j;
+        reader.read(0, j, offset[0]);
+        reader.read(choice.b, j, offset[1]);
+        reader.read(choice.c, j, offset[2]);
+        reader.read(choice.d, j, offset[3]);
+        const StartTetrahedron<T> start = start_tetrahedron(offset, choice.positive, lo - seed, hi - seed);
+        if (start.found) {
+          cell.init_tetrahedron(lo - seed, hi - seed, start, relative_tolerance, band_widenings);
+          used_by_start = choice.used();
+        }
+      }
     }
-    const T r2 = dot(r, r);
-    if (r2 == T(0)) {
-      // Exact duplicate: the lowest index keeps the cell, the others are empty.
-      if (j < seed_index) {
-        out.status = kDuplicate;
+    if (used_by_start == 0u) cell.init_box(lo - seed, hi - seed, relative_tolerance, band_widenings);
+
+    out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
+    out.neighbors = k;
+    Vec3<T> previous = {T(0), T(0), T(0)};
+    for (int32_t n = 0; n < k; ++n) {
+      int32_t j;
+      Vec3<T> r;  // the neighbour relative to the seed
+      reader.read(n, j, r);
+      if (j < 0) {  // every point of the batch element has been used
+        out.status = kSuccess;
+        out.neighbors = n;
+        break;
+      }
+      const T r2 = dot(r, r);
+      listed_dist2 = r2;
+      if (r2 == T(0)) {
+        // Exact duplicate: the lowest index keeps the cell, the others are empty.
+        if (j < seed_index) {
+          out.status = kDuplicate;
+          out.neighbors = n + 1;
+          break;
+        }
+        continue;
+      }
+      // Exact copies among the neighbours (sorted, so adjacent) give the same
+      // bisector twice: clip once.
+      if (n > 0 && r.x == previous.x && r.y == previous.y && r.z == previous.z) continue;
+      previous = r;
+      if (cell.security_radius_reached(r2)) {
+        out.status = kSuccess;
+        out.neighbors = n;
+        break;
+      }
+      // A neighbour of the start tetrahedron has clipped the cell already.
+      if (n < kStartCandidates && ((used_by_start >> n) & 1u) != 0u) continue;
+      if (!cell.clip_by_bisector(r)) {
+        out.status = cell.status;
         out.neighbors = n + 1;
         break;
       }
-      continue;
     }
-    // Exact copies among the neighbours (sorted, so adjacent) give the same
-    // bisector twice: clip once.
-    if (n > 0 && r.x == previous.x && r.y == previous.y && r.z == previous.z) continue;
-    previous = r;
-    if (cell.security_radius_reached(r2)) {
-      out.status = kSuccess;
-      out.neighbors = n;
-      break;
-    }
-    // A neighbour of the start tetrahedron has clipped the cell already.
-    if (n < kStartCandidates && ((used_by_start >> n) & 1u) != 0u) continue;
-    if (!cell.clip_by_bisector(r)) {
-      out.status = cell.status;
-      out.neighbors = n + 1;
-      break;
+  };
+  start_and_clip_list();
+
+  if constexpr (Cell::kVertexBalls) {
+    if (vertex_balls != nullptr && out.status == kSecurityRadiusNotReached) {
+      int32_t further = 0;
+      out.status = finish_by_vertex_balls(cell, *vertex_balls, seed_index, seed, listed_dist2,
+                                          start_and_clip_list, further);
+      out.neighbors = k + further;
     }
   }
   // One exit from the loop above (no early return inside it): on the GPU the

@@ -25,6 +25,13 @@ struct Grid {
   at::Tensor dims;           // (B, 3) int32
   at::Tensor cell_offset;    // (B,) int32
 
+  // A copy on the CPU (the double-double pass runs there).
+  Grid to_cpu() const {
+    const auto cpu = [](const at::Tensor& t) { return t.defined() ? t.to(at::kCPU).contiguous() : t; };
+    return {cpu(sorted_points), cpu(sorted_index), cpu(cell_start), cpu(origin),
+            cpu(cell_size),     cpu(dims),         cpu(cell_offset)};
+  }
+
   template <typename T>
   core::GridView<T> view() const {
     return {sorted_points.data_ptr<T>(),

@@ -71,8 +71,10 @@ at::Tensor empty_records(int64_t n, const at::TensorOptions& options) {
   return at::empty({n, int64_t(sizeof(CellRecord<io_t>))}, options.dtype(at::kByte));
 }
 
-// Clip cell `cells[t]` by its neighbours (row t of `neighbors`).
-template <typename io_t, typename T, int MAX_PLANES>
+// Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
+// kVertexBalls (thread cells only), a cell whose neighbours run out before
+// the radius of security is finished on the grid (core::finish_by_vertex_balls).
+template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false>
 struct ClipFunctor {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
   using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
@@ -91,6 +93,7 @@ struct ClipFunctor {
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
   int8_t* status;              // (N,) by position: the records' statuses again
+  core::GridView<io_t> grid;   // the points by position, for kVertexBalls
 
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
@@ -110,10 +113,12 @@ struct ClipFunctor {
   TV_HD core::CellIntegrals<T> compute(Cell& cell, int64_t t) const {
     const int32_t cell_id = cells[t];
     const int64_t b = batch ? batch[cell_id] : 0;
+    const core::VertexBallGrid<io_t> vertex_balls{grid, b};
     return core::compute_cell(cell, points, cell_id,
                               neighbors + (neighbors_column_major ? t : t * int64_t(k)),
                               neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b,
-                              tolerance, band_widenings, tetrahedron_start);
+                              tolerance, band_widenings, tetrahedron_start,
+                              kVertexBalls ? &vertex_balls : nullptr);
   }
 
   TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
@@ -149,9 +154,10 @@ struct PassSettings {
   int64_t k;
   int tier;            // 0, 1, 2: at most 32, 64, 160 planes
   Precision precision;
+  bool vertex_balls = false;  // cells whose k neighbours run out are finished on the grid
 
   bool operator==(const PassSettings& o) const {
-    return k == o.k && tier == o.tier && precision == o.precision;
+    return k == o.k && tier == o.tier && precision == o.precision && vertex_balls == o.vertex_balls;
   }
 };
 
@@ -268,47 +274,61 @@ inline bool tetrahedron_start() {
   return !(forced != nullptr && std::strcmp(forced, "box") == 0);
 }
 
+// Clips a chunk of cells. With `vertex_balls` (the grid of `points` by
+// position), cells whose neighbours run out before the radius of security
+// are finished on it (ClipFunctor's kVertexBalls), by thread cells.
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
-                bool rows_by_step, c10::optional<double> neighbor_spread, PositionOutputs& out) {
-  ClipFunctor<io_t, T, MAX_PLANES> functor{
-      points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
-      batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
-      cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
-      static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
-      T(core::ClipTolerance<T>::value),
-      band_widenings,                 tetrahedron_start(),
-      rows_by_step,                   out.data<io_t>(),
-      out.status.data_ptr<int8_t>()};
+                bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
+                PositionOutputs& out) {
+  const auto functor = [&](auto finish_by_vertex_balls) {
+    return ClipFunctor<io_t, T, MAX_PLANES, decltype(finish_by_vertex_balls)::value>{
+        points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
+        batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+        cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
+        static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
+        T(core::ClipTolerance<T>::value),
+        band_widenings,                 tetrahedron_start(),
+        rows_by_step,                   out.data<io_t>(),
+        out.status.data_ptr<int8_t>(),
+        vertex_balls != nullptr ? vertex_balls->view<io_t>() : core::GridView<io_t>{}};
+  };
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size, k and the
   // pilot's neighbour spread, and TORCHVOR_CELLS=thread|cooperative
-  // overrides it (use_cooperative).
+  // overrides it (use_cooperative). Cells finished on the grid are thread
+  // cells, whatever the pass.
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
-    Exec::for_each(cells.size(0), functor);
+    if (vertex_balls != nullptr) {
+      Exec::for_each(cells.size(0), functor(std::true_type{}));
+    } else {
+      Exec::for_each(cells.size(0), functor(std::false_type{}));
+    }
+  } else if (vertex_balls != nullptr) {
+    Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::true_type{}));
   } else if (use_cooperative("TORCHVOR_CELLS",
                              Exec::cooperative_cells(cells.size(0), neighbors.size(1), neighbor_spread))) {
-    Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
-                                                                                          functor);
+    Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(
+        cells.size(0), functor(std::false_type{}));
   } else {
-    Exec::for_each_cell(cells.size(0), neighbors.size(1), functor);
+    Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::false_type{}));
   }
 }
 
 template <typename Exec, typename io_t, typename T>
 void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                     const at::Tensor& neighbors, int tier, c10::optional<double> neighbor_spread,
-                     PositionOutputs& out) {
+                     const at::Tensor& neighbors, int tier, const Grid* vertex_balls,
+                     c10::optional<double> neighbor_spread, PositionOutputs& out) {
   constexpr bool column_major = Exec::kColumnMajorNeighbors;
   switch (tier) {
-    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, column_major, 0, false, neighbor_spread, out); break;
-    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, column_major, 0, false, neighbor_spread, out); break;
-    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, column_major, 0, false, neighbor_spread, out); break;
+    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, column_major, 0, false, vertex_balls, neighbor_spread, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, column_major, 0, false, vertex_balls, neighbor_spread, out); break;
+    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, column_major, 0, false, vertex_balls, neighbor_spread, out); break;
   }
 }
 
@@ -318,17 +338,20 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
 template <typename io_t>
 void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                              const at::Tensor& neighbors, bool column_major, PositionOutputs& out) {
+                              const at::Tensor& neighbors, bool column_major, const Grid* vertex_balls,
+                              PositionOutputs& out) {
   const int64_t m = cells.size(0);
   const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU).contiguous(); };
   const c10::optional<at::Tensor> batch_cpu =
       batch.has_value() ? c10::optional<at::Tensor>(cpu(*batch)) : c10::nullopt;
+  const Grid vertex_balls_cpu = vertex_balls != nullptr ? vertex_balls->to_cpu() : Grid{};
   PositionOutputs part;
   part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
   part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
   clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
       cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
-      /*band_widenings=*/6, /*rows_by_step=*/true, /*neighbor_spread=*/c10::nullopt, part);
+      /*band_widenings=*/6, /*rows_by_step=*/true, vertex_balls != nullptr ? &vertex_balls_cpu : nullptr,
+      /*neighbor_spread=*/c10::nullopt, part);
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
   out.status.index_copy_(0, rows, part.status.to(out.status.device()));
@@ -358,13 +381,16 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                         /*row_by_query=*/false, Exec::kColumnMajorNeighbors, no_distances, neighbors);
+    const Grid* vertex_balls = pass.vertex_balls ? &grid : nullptr;
     if (pass.precision == Precision::kDoubleDouble) {
       clip_chunk_double_double<io_t>(points, box, batch, part, neighbors,
-                                     Exec::kColumnMajorNeighbors, out);
+                                     Exec::kColumnMajorNeighbors, vertex_balls, out);
     } else if (pass.precision == Precision::kFloat64 || std::is_same<io_t, double>::value) {
-      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, neighbor_spread, out);
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
+                                          neighbor_spread, out);
     } else {
-      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, neighbor_spread, out);
+      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
+                                         neighbor_spread, out);
     }
   }
 }
@@ -399,6 +425,20 @@ inline double pilot_quantile() {
   const char* chosen = std::getenv("TORCHVOR_PILOT_QUANTILE");
   const double quantile = chosen != nullptr ? std::atof(chosen) : kDefault;
   return (quantile > 0.0 && quantile <= 1.0) ? quantile : kDefault;
+}
+
+// The most neighbours a retry asks for; a cell that needs more is finished
+// on the grid, by the empty balls of its vertices, from a list of this many
+// (core::finish_by_vertex_balls): a cell that reaches into empty space would
+// ask for up to the whole cloud. TORCHVOR_VERTEX_BALLS_K (an integer >= 1)
+// overrides it (tests, benchmarks).
+inline int64_t vertex_balls_k() {
+  constexpr int64_t kDefault = 128;
+  const char* chosen = std::getenv("TORCHVOR_VERTEX_BALLS_K");
+  if (chosen == nullptr) return kDefault;
+  char* end = nullptr;
+  const long long value = std::strtoll(chosen, &end, 10);
+  return (end != chosen && *end == '\0' && value >= 1) ? static_cast<int64_t>(value) : kDefault;
 }
 
 template <typename Exec, typename io_t, typename Run>
@@ -504,7 +544,19 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
     // (2 CPU cores, 100K white / perturbed / blue: 502 / 396 / 256 ms at 2x,
     // 488 / 384 / 251 at 1.5x, 496 / 386 / 254 at 1.25x).
-    if (ask[0]) next.k = std::min(pass.k + std::max<int64_t>(8, pass.k / 2), largest_cloud);
+    if (ask[0]) {
+      // Up to vertex_balls_k neighbours by the radius of security, then that
+      // many and the grid: whether and how a cell is finished on the grid
+      // depends on the cell alone, not on the passes before.
+      const int64_t most = vertex_balls_k();
+      const int64_t more = std::min(pass.k + std::max<int64_t>(8, pass.k / 2), largest_cloud);
+      if (more <= most || pass.k < most) {
+        next.k = std::min(more, most);
+      } else {
+        next.k = most;
+        next.vertex_balls = true;
+      }
+    }
     if (ask[1]) next.tier = std::min(pass.tier + 1, 2);
     if (ask[2]) {
       next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
