@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -55,6 +55,10 @@ for step in "${@:-smoke}"; do
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+    hard)  # inputs whose cells reach into empty space (clusters with voids, a box 3x wide); HARD_K: settings
+           # of TORCHVOR_VERTEX_BALLS_K (10^9 alone: the radius of security, the behaviour before)
+      python3 benchmarks/bench_hard_inputs.py --device cuda --sizes ${HARD_SIZES:-100K,1M} \
+        --vertex-balls-k ${HARD_K:-128} 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/hard.log" ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     ncusource)  # source-level profile of the clip kernels: a warp per cell on white noise (k=64) and on a
                 # perturbed grid (k=48), a thread per cell on blue noise (k=24); NCU_CASES picks some
