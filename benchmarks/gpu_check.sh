@@ -58,7 +58,7 @@ for step in "${@:-smoke}"; do
     hard)  # inputs whose cells reach into empty space (clusters with voids, a box 3x wide); HARD_K: settings
            # of TORCHVOR_VERTEX_BALLS_K (10^9 alone: the radius of security, the behaviour before)
       python3 benchmarks/bench_hard_inputs.py --device cuda --sizes ${HARD_SIZES:-100K,1M} \
-        --vertex-balls-k ${HARD_K:-128} 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/hard.log" ;;
+        --vertex-balls-k ${HARD_K:-default} 2>&1 | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/hard.log" ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     ncusource)  # source-level profile of the clip kernels: a warp per cell on white noise (k=64) and on a
                 # perturbed grid (k=48), a thread per cell on blue noise (k=24); NCU_CASES picks some

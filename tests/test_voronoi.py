@@ -206,11 +206,11 @@ def cells_impl(request, monkeypatch):
     return request.param
 
 
-@pytest.fixture(params=["past 128", "every retry"])
+@pytest.fixture(params=["past 256", "every retry"])
 def vertex_balls(request, monkeypatch):
     """The most neighbours a retry asks for (TORCHVOR_VERTEX_BALLS_K): cells
     that need more are finished on the grid by the empty balls of their
-    vertices, from a list of that many. By default 128; with 1, every cell a
+    vertices, from a list of that many. By default 256; with 1, every cell a
     retry takes is finished so, from its nearest neighbour alone. The tests
     that take this fixture run both."""
     if request.param == "every retry":
@@ -837,7 +837,7 @@ def test_small_k_recovery(device, dtype, gen, cells_impl, vertex_balls):
 def test_clusters_with_voids(monkeypatch, device, dtype, seed, gen):
     """Dense clusters with empty space between them: the cells at a cluster's
     edge reach far into the void, and the radius of security would ask for
-    every point within twice their farthest vertex, whole clusters. Past 128
+    every point within twice their farthest vertex, whole clusters. Past 256
     neighbours a retry finishes them by the empty balls of their vertices
     instead (core::clip_by_vertex_balls): the exact cells, the largest ones
     (in the voids) checked against the oracle, and the same cells, up to
@@ -859,7 +859,7 @@ def test_clusters_with_voids(monkeypatch, device, dtype, seed, gen):
 def test_vertex_balls_k_changes_no_cell(monkeypatch, device, dtype, gen, most):
     """TORCHVOR_VERTEX_BALLS_K sets the most neighbours a retry asks for
     before it finishes its cells by their vertices' balls (values that are
-    not an integer >= 1 keep the default, 128). Either way the cells are
+    not an integer >= 1 keep the default, 256). Either way the cells are
     exact: the same statuses and integrals up to rounding (the planes come
     in another order); only `neighbors` counts other work."""
     points = rand(4000, gen, dtype, device)
@@ -1269,7 +1269,7 @@ def clip_kernels_run(call):
     """Which clip kernels a CUDA call launched: 'thread' (a thread per cell,
     CudaExec::for_each_cell), 'warp' (a warp per cell, for_each_cooperative)
     and 'vertex balls' (thread cells finished on the grid: ClipFunctor's
-    kVertexBalls, the retries past 128 neighbours)."""
+    kVertexBalls, the retries past 256 neighbours)."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
@@ -1287,7 +1287,7 @@ def clip_kernels_run(call):
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("kind", ["voids", "wide box"])
 def test_cuda_vertex_balls_match_cpu(dtype, seed, kind):
-    """The cells finished on the grid by their vertices' balls (past 128
+    """The cells finished on the grid by their vertices' balls (past 256
     neighbours: clusters with voids between them, a box three times as wide
     as the points) run as thread cells on CUDA and equal the CPU's: the same
     statuses and integrals up to rounding."""
@@ -1323,7 +1323,7 @@ def test_cuda_cells_chosen_by_neighbor_spread(dtype, gen, seed, kind, k):
         points = rand(n, gen, dtype, "cpu")
     gpu, launched = clip_kernels_run(lambda: torchvor.voronoi(points.cuda(), UNIT, k=k))
     # The pilot and small retry passes are warps whatever the kind; a cell of
-    # white noise near a box corner may need more than 128 neighbours.
+    # white noise near a box corner may need more than 256 neighbours.
     assert launched - {"vertex balls"} == ({"thread", "warp"} if kind == "jittered" else {"warp"})
     check_global(gpu, points.cuda(), [box_of(points.cuda(), UNIT)], dtype)
     cpu = torchvor.voronoi(points, UNIT, k=k)

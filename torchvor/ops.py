@@ -50,9 +50,9 @@ class VoronoiCells(NamedTuple):
     status: (N,) int8 :class:`CellStatus` codes.
     neighbors: (N,) int32 number of nearest neighbours the cell needed
         (the radius-of-security criterion was met after that many). A cell
-        that would need more than 128 is finished by the empty balls of its
-        vertices instead (see :func:`voronoi`): 128 plus the further points
-        that test clipped it by.
+        that would need more than 256 is finished by the empty balls of its
+        vertices instead (see :func:`voronoi`): 256 (its list) plus its
+        Voronoi neighbours beyond the list.
     Floating outputs have the points' dtype; a cell that could not be computed
     has NaN outputs and a failure status.
     """
@@ -205,7 +205,7 @@ def voronoi(
     farthest vertex. Where a cell reaches into empty space (a void between
     dense clusters, or towards the walls of a box far wider than the points)
     that can be whole clusters, up to the whole cloud. A cell that would need
-    more than 128 neighbours is therefore finished otherwise: from its 128
+    more than 256 neighbours is therefore finished otherwise: from its 256
     nearest, it is clipped by every point of the kNN grid that lies in the
     ball around one of its vertices through the seed (only such a point can
     cut it), until none is left. On 2 CPU cores, 50K points in 20 Gaussian
@@ -220,7 +220,7 @@ def voronoi(
             a (2, 3) tensor, or (B, 2, 3) with ``batch``.
         batch: optional (N,) int64 sorted batch vector: each cloud is its own diagram.
         k: neighbours fetched per cell in the first pass; cells that need more
-            are retried with 1.5 times as many (at least 8 more), up to 128,
+            are retried with 1.5 times as many (at least 8 more), up to 256,
             then finished by the empty balls of their vertices (below).
             Default None:
             measured on a pilot sample of about 1000 cells (their 98th
@@ -235,7 +235,7 @@ def voronoi(
         memory_budget: bytes for the neighbour buffer of one chunk of cells
             (4 bytes a neighbour). A chunk holds at least 1024 cells, so a first
             pass whose k exceeds ``memory_budget / 4096`` (65536 by default)
-            takes more; retries ask for at most 128 neighbours a cell.
+            takes more; retries ask for at most 256 neighbours a cell.
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,

@@ -430,10 +430,14 @@ inline double pilot_quantile() {
 // The most neighbours a retry asks for; a cell that needs more is finished
 // on the grid, by the empty balls of its vertices, from a list of this many
 // (core::finish_by_vertex_balls): a cell that reaches into empty space would
-// ask for up to the whole cloud. TORCHVOR_VERTEX_BALLS_K (an integer >= 1)
-// overrides it (tests, benchmarks).
+// ask for up to the whole cloud. 256, not 128: at 128 white noise's few
+// cells at the box corners (up to ~200 neighbours) went to the grid, one
+// thread sweeping each, and that pass cost more than two more kNN passes
+// (H100, 1M white noise, default k: clip kernels 15.36 -> 17.03 ms, call
+// 23.6 -> 25.1; benchmarks/NOTES.md). TORCHVOR_VERTEX_BALLS_K (an integer
+// >= 1) overrides it (tests, benchmarks).
 inline int64_t vertex_balls_k() {
-  constexpr int64_t kDefault = 128;
+  constexpr int64_t kDefault = 256;
   const char* chosen = std::getenv("TORCHVOR_VERTEX_BALLS_K");
   if (chosen == nullptr) return kDefault;
   char* end = nullptr;
