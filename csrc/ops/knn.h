@@ -84,6 +84,10 @@ struct KnnFunctor {
   }
   TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * row_stride; }
 };
+// Past 128 bytes of kernel parameter nvcc reads a functor's fields at each
+// use instead of once at the kernel's entry (ops/voronoi.h's
+// VertexBallsGridMember); this one is 120.
+static_assert(sizeof(KnnFunctor<double, int64_t>) <= 128, "the kNN functor must stay within 128 bytes");
 
 // Runs the search for `count` queries. `dist2` may be undefined when only
 // indices are wanted. Results are (rows, k) row-major, or (k, rows)

@@ -71,11 +71,25 @@ at::Tensor empty_records(int64_t n, const at::TensorOptions& options) {
   return at::empty({n, int64_t(sizeof(CellRecord<io_t>))}, options.dtype(at::kByte));
 }
 
+// The grid that the vertex-ball passes sweep, held only by their functors
+// (an empty base of the others). As a member of every clip functor it made
+// the kernel parameter 136 bytes instead of 80. Past 128 bytes nvcc reads a
+// functor's fields at each use instead of once at the kernel's entry (the
+// neighbour stride was recomputed at every read), and the 1M blue-noise
+// clip kernel took 1.6% longer (H100, benchmarks/NOTES.md). The static_assert
+// below the functor keeps the hot ones within 128 bytes.
+template <typename io_t, bool kVertexBalls>
+struct VertexBallsGridMember {
+  core::GridView<io_t> grid;  // the points by position
+};
+template <typename io_t>
+struct VertexBallsGridMember<io_t, false> {};
+
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
 // kVertexBalls (thread cells only), a cell whose neighbours run out before
 // the radius of security is finished on the grid (core::finish_by_vertex_balls).
 template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false>
-struct ClipFunctor {
+struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
   using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
 
@@ -93,7 +107,6 @@ struct ClipFunctor {
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
   int8_t* status;              // (N,) by position: the records' statuses again
-  core::GridView<io_t> grid;   // the points by position, for kVertexBalls
 
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
@@ -113,12 +126,16 @@ struct ClipFunctor {
   TV_HD core::CellIntegrals<T> compute(Cell& cell, int64_t t) const {
     const int32_t cell_id = cells[t];
     const int64_t b = batch ? batch[cell_id] : 0;
-    const core::VertexBallGrid<io_t> vertex_balls{grid, b};
-    return core::compute_cell(cell, points, cell_id,
-                              neighbors + (neighbors_column_major ? t : t * int64_t(k)),
-                              neighbors_column_major ? int64_t(chunk) : int64_t(1), k, box + 6 * b,
-                              tolerance, band_widenings, tetrahedron_start,
-                              kVertexBalls ? &vertex_balls : nullptr);
+    const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
+    const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
+    if constexpr (kVertexBalls) {
+      const core::VertexBallGrid<io_t> vertex_balls{this->grid, b};
+      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance,
+                                band_widenings, tetrahedron_start, &vertex_balls);
+    } else {
+      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance,
+                                band_widenings, tetrahedron_start);
+    }
   }
 
   TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
@@ -130,6 +147,8 @@ struct ClipFunctor {
     status[i] = out.status;
   }
 };
+static_assert(sizeof(ClipFunctor<float, float, 32>) <= 128 && sizeof(ClipFunctor<double, double, 32>) <= 128,
+              "clip functors beyond 128 bytes get slower kernels (VertexBallsGridMember)");
 
 // After a pass, in one kernel: which status codes its cells got (bit
 // code - kNotComputed of words[0]) and the list of the cells that failed
@@ -284,7 +303,9 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
                 PositionOutputs& out) {
   const auto functor = [&](auto finish_by_vertex_balls) {
-    return ClipFunctor<io_t, T, MAX_PLANES, decltype(finish_by_vertex_balls)::value>{
+    constexpr bool kVertexBalls = decltype(finish_by_vertex_balls)::value;
+    ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls> clip{
+        {},
         points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
         cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
@@ -292,8 +313,9 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
         T(core::ClipTolerance<T>::value),
         band_widenings,                 tetrahedron_start(),
         rows_by_step,                   out.data<io_t>(),
-        out.status.data_ptr<int8_t>(),
-        vertex_balls != nullptr ? vertex_balls->view<io_t>() : core::GridView<io_t>{}};
+        out.status.data_ptr<int8_t>()};
+    if constexpr (kVertexBalls) clip.grid = vertex_balls->view<io_t>();
+    return clip;
   };
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size, k and the
