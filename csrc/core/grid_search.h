@@ -56,6 +56,18 @@ TV_HD T slab_gap(T x, T origin, T cell_size, int32_t c, T margin) {
   return max_of(gap - margin, T(0));
 }
 
+// Points are assigned to grid cells by a rounded division: bounds on the
+// distance to a cell keep this margin (of a cell's edge) so that they never
+// overestimate it.
+template <typename T>
+TV_HD T cell_margin(T cell_size) {
+  return cell_size * T(1e-3);
+}
+
+// The i-th grid coordinate counted from c outwards: c, c - 1, c + 1, c - 2,
+// c + 2, ...
+TV_HD int32_t center_out(int32_t c, int32_t i) { return c + ((i & 1) ? -((i + 1) >> 1) : (i >> 1)); }
+
 // A candidate neighbour as one comparable key, ordered by (squared distance,
 // index) so that ties go to the lower index. For float32 the two fit in one
 // uint64 (non-negative float bits sort like unsigned integers): one integer
@@ -258,13 +270,12 @@ template <typename T>
 struct Rings {
   Vec3<T> query, origin;
   T h;       // cell edge
-  T margin;  // points are assigned to cells by a rounded division: the ring
-             // bounds keep this margin so they never overestimate a distance
+  T margin;  // cell_margin(h)
   int32_t dim[3], cell[3], offset;
 
   TV_HD Rings(const GridView<T>& grid, int64_t batch, Vec3<T> q)
       : query(q), origin(load_vec3(grid.origin + 3 * batch)), h(grid.cell_size[batch]),
-        margin(h * T(1e-3)), offset(grid.cell_offset[batch]) {
+        margin(cell_margin(h)), offset(grid.cell_offset[batch]) {
     TV_UNROLL
     for (int a = 0; a < 3; ++a) dim[a] = grid.dims[3 * batch + a];
     cell[0] = grid_coordinate(query.x, origin.x, h, dim[0]);
@@ -277,10 +288,6 @@ struct Rings {
   TV_HD int32_t high(int a, int32_t r) const { return min_of(cell[a] + r, dim[a] - 1); }
 
   TV_HD T gap_z(int32_t z) const { return slab_gap(query.z, origin.z, h, z, margin); }
-
-  // The i-th coordinate along axis a counted from the query's cell outwards:
-  // c, c - 1, c + 1, c - 2, c + 2, ...
-  TV_HD int32_t center_out(int a, int32_t i) const { return cell[a] + ((i & 1) ? -((i + 1) >> 1) : (i >> 1)); }
 
   // The points of row (z, y) of shell r that may beat the heap's worst
   // candidate (strictly: an equally far point with a lower index would still
@@ -355,13 +362,13 @@ TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int
     // Slabs and rows from the query's own outwards: the heap fills with
     // nearer candidates first, so fewer later ones replace its root.
     for (int32_t step_z = 0; step_z <= 2 * r; ++step_z) {
-      const int32_t z = rings.center_out(2, step_z);
+      const int32_t z = center_out(rings.cell[2], step_z);
       if (z < rings.low(2, r) || z > rings.high(2, r)) continue;
       // A whole slab of rows beyond the worst candidate: skip it.
       const T gap_z = rings.gap_z(z);
       if (heap.full() && gap_z * gap_z > heap.worst()) continue;
       for (int32_t step_y = 0; step_y <= 2 * r; ++step_y) {
-        const int32_t y = rings.center_out(1, step_y);
+        const int32_t y = center_out(rings.cell[1], step_y);
         if (y < rings.low(1, r) || y > rings.high(1, r)) continue;
         const RowRanges ranges = rings.row(r, z, y, gap_z, grid.cell_start, heap);
         TV_UNROLL
