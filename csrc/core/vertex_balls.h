@@ -15,7 +15,7 @@
 // Clipping only shrinks the cell, and with it the union of its balls (a
 // point that cuts the smaller cell cuts the larger). So one sweep over the
 // grid rows that meet the balls of the cell as the sweep found it, each row
-// cut to the x range that meets the balls of the cell as it is then, offers
+// cut to the part that meets the balls of the cell as it is then, offers
 // every point that can cut the final cell; a point that did not cut the cell
 // when offered cannot cut it later. Rows go from the seed's outwards, so the
 // nearer points clip first and the balls shrink early.
@@ -45,6 +45,14 @@ struct VertexBallGrid {
   int64_t batch;
 };
 
+// The kNN ranked a cell's list in the input's precision: a point a rounding
+// away from the last listed one (at listed_dist2) may be missing from it.
+// Points from this squared distance on are so taken as possibly unlisted.
+template <typename T>
+TV_HD T unlisted_from(T listed_dist2) {
+  return listed_dist2 * (T(1) - T(1e-4));
+}
+
 // Clips `cell` (relative to `seed`, point `seed_index` of the grid's
 // points) by every point of the grid in its vertices' balls. Points nearer
 // than `listed_dist2` were in the neighbour list that clipped the cell
@@ -53,28 +61,37 @@ struct VertexBallGrid {
 // cell already (ConvexCell::has_bisector). Returns kSuccess, kDuplicate (an
 // exact copy of the seed with a lower index), or the cell's status where a
 // clip failed; `clipped`: whether any point cut the cell.
+//
+// The rows run along the axis where the balls' bounding box spans the most
+// grid cells, so that it has the fewest rows: each row costs a pass over the
+// vertices. A hull cell of points in a box 3x wider than them reaches the
+// box's wall; along the wall's normal its balls span a cell or two of the
+// grid, across it all of it, and rows along that normal were ~100x as many.
 template <typename Cell, typename io_t, typename T>
 TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, int32_t seed_index,
                                 Vec3<T> seed, T listed_dist2, bool& clipped) {
   // Which rows and cells to visit is decided in S (double for double-double:
   // a margin covers its rounding); the clips run in T.
   using S = typename ChoiceScalar<T>::type;
+  // Component a of a vector, by selects: indexed by a run-time axis, an
+  // array would live in local memory on the GPU.
+  const auto along = [](auto v, int a) { return a == 0 ? v.x : (a == 1 ? v.y : v.z); };
   const auto to_s = [](Vec3<T> v) { return Vec3<S>{S(v.x), S(v.y), S(v.z)}; };
   const GridView<io_t>& grid = where.grid;
   const int64_t b = where.batch;
   const S h = S(grid.cell_size[b]);
-  const S margin = h * S(1e-3);  // points go to cells by a rounded division (Rings::margin)
-  const Vec3<S> origin = {S(grid.origin[3 * b]), S(grid.origin[3 * b + 1]), S(grid.origin[3 * b + 2])};
+  const S margin = cell_margin(h);
   const Vec3<S> seed_s = to_s(seed);
-  const int32_t dim[3] = {grid.dims[3 * b], grid.dims[3 * b + 1], grid.dims[3 * b + 2]};
+  // The grid's origin relative to the seed, as the vertices are.
+  const Vec3<S> origin = Vec3<S>{S(grid.origin[3 * b]), S(grid.origin[3 * b + 1]), S(grid.origin[3 * b + 2])} - seed_s;
+  const Vec3<int32_t> dim = {grid.dims[3 * b], grid.dims[3 * b + 1], grid.dims[3 * b + 2]};
+  const Vec3<int32_t> stride = {1, dim.x, dim.x * dim.y};  // between neighbouring grid cells
   const int32_t first_cell = grid.cell_offset[b];
-  // The kNN ranked the list in the input's precision: a point a rounding
-  // away from the last listed one may be missing from it, so it is offered.
-  const T skip_below = listed_dist2 * (T(1) - T(1e-4));
+  const T skip_below = unlisted_from(listed_dist2);
   clipped = false;
 
   // The bounding box of the balls (each passes through the seed), as grid
-  // coordinates along z and y.
+  // coordinates [low, high] along each axis.
   Vec3<S> lo = {S(0), S(0), S(0)}, hi = {S(0), S(0), S(0)};
   for (int t = 0; t < cell.vertex_count(); ++t) {
     const Vec3<S> v = to_s(cell.vertex(t));
@@ -82,59 +99,76 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
     lo = {min_of(lo.x, v.x - radius), min_of(lo.y, v.y - radius), min_of(lo.z, v.z - radius)};
     hi = {max_of(hi.x, v.x + radius), max_of(hi.y, v.y + radius), max_of(hi.z, v.z + radius)};
   }
-  const int32_t seed_cell_y = grid_coordinate(seed_s.y, origin.y, h, dim[1]);
-  const int32_t seed_cell_z = grid_coordinate(seed_s.z, origin.z, h, dim[2]);
-  const int32_t y_lo = grid_coordinate(seed_s.y + lo.y, origin.y, h, dim[1]);
-  const int32_t y_hi = grid_coordinate(seed_s.y + hi.y, origin.y, h, dim[1]);
-  const int32_t z_lo = grid_coordinate(seed_s.z + lo.z, origin.z, h, dim[2]);
-  const int32_t z_hi = grid_coordinate(seed_s.z + hi.z, origin.z, h, dim[2]);
-  const int32_t z_steps = 2 * max_of(seed_cell_z - z_lo, z_hi - seed_cell_z) + 1;
-  const int32_t y_steps = 2 * max_of(seed_cell_y - y_lo, y_hi - seed_cell_y) + 1;
-  // The i-th coordinate from c outwards: c, c - 1, c + 1, c - 2, ...
-  const auto center_out = [](int32_t c, int32_t i) { return c + ((i & 1) ? -((i + 1) >> 1) : (i >> 1)); };
-  // Distance from x to the slab [low, low + h] (relative to the seed), less the margin.
-  const auto gap = [&](S x, S low) { return max_of(max_of(low - x, x - (low + h)) - margin, S(0)); };
+  const Vec3<int32_t> low = {grid_coordinate(lo.x, origin.x, h, dim.x), grid_coordinate(lo.y, origin.y, h, dim.y),
+                             grid_coordinate(lo.z, origin.z, h, dim.z)};
+  const Vec3<int32_t> high = {grid_coordinate(hi.x, origin.x, h, dim.x), grid_coordinate(hi.y, origin.y, h, dim.y),
+                              grid_coordinate(hi.z, origin.z, h, dim.z)};
+  // The row axis (x on a tie: its cells are contiguous in the grid's order,
+  // one range a row), then the two across it, the outer one last.
+  const Vec3<int32_t> span = high - low;
+  const int row_axis = span.x >= span.y && span.x >= span.z ? 0 : (span.y >= span.z ? 1 : 2);
+  const int inner = row_axis == 1 ? 0 : 1;
+  const int outer = row_axis == 2 ? 0 : 2;
+  // Each axis's numbers for the loops below, taken out once.
+  struct Axis {
+    S origin;
+    int32_t dim, stride, seed_cell, low, high;
+  };
+  const auto axis = [&](int a) {
+    const S o = along(origin, a);
+    const int32_t d = along(dim, a);
+    return Axis{o, d, along(stride, a), grid_coordinate(S(0), o, h, d), along(low, a), along(high, a)};
+  };
+  const Axis row = axis(row_axis), across = axis(inner), slab = axis(outer);
+  const auto steps = [](const Axis& a) { return 2 * max_of(a.seed_cell - a.low, a.high - a.seed_cell) + 1; };
 
-  for (int32_t step_z = 0; step_z < z_steps; ++step_z) {
-    const int32_t z = center_out(seed_cell_z, step_z);
-    if (z < z_lo || z > z_hi) continue;
-    const S z_low = origin.z + S(z) * h - seed_s.z;
-    for (int32_t step_y = 0; step_y < y_steps; ++step_y) {
-      const int32_t y = center_out(seed_cell_y, step_y);
-      if (y < y_lo || y > y_hi) continue;
-      const S y_low = origin.y + S(y) * h - seed_s.y;
-      // The x range of the row that meets a ball of the cell as it is now.
-      S x_lo = S(0), x_hi = S(0);
+  for (int32_t slab_step = 0; slab_step < steps(slab); ++slab_step) {
+    const int32_t c_slab = center_out(slab.seed_cell, slab_step);
+    if (c_slab < slab.low || c_slab > slab.high) continue;
+    for (int32_t across_step = 0; across_step < steps(across); ++across_step) {
+      const int32_t c_across = center_out(across.seed_cell, across_step);
+      if (c_across < across.low || c_across > across.high) continue;
+      // The part of the row that meets a ball of the cell as it is now.
+      S reach_lo = S(0), reach_hi = S(0);
       bool meets = false;
       for (int t = 0; t < cell.vertex_count(); ++t) {
         const Vec3<S> v = to_s(cell.vertex(t));
-        const S gap_y = gap(v.y, y_low), gap_z = gap(v.z, z_low);
-        const S reach2 = squared_norm(v) - gap_y * gap_y - gap_z * gap_z;
+        const S gap_slab = slab_gap(along(v, outer), slab.origin, h, c_slab, margin);
+        const S gap_across = slab_gap(along(v, inner), across.origin, h, c_across, margin);
+        const S reach2 = squared_norm(v) - gap_slab * gap_slab - gap_across * gap_across;
         if (!(reach2 > S(0))) continue;
         const S reach = sqrt_of(reach2) + margin;
-        x_lo = meets ? min_of(x_lo, v.x - reach) : v.x - reach;
-        x_hi = meets ? max_of(x_hi, v.x + reach) : v.x + reach;
+        const S v_row = along(v, row_axis);
+        reach_lo = meets ? min_of(reach_lo, v_row - reach) : v_row - reach;
+        reach_hi = meets ? max_of(reach_hi, v_row + reach) : v_row + reach;
         meets = true;
       }
       if (!meets) continue;
-      const int32_t xa = grid_coordinate(seed_s.x + x_lo, origin.x, h, dim[0]);
-      const int32_t xb = grid_coordinate(seed_s.x + x_hi, origin.x, h, dim[0]);
-      const int32_t row_start = first_cell + (z * dim[1] + y) * dim[0];
-      const int32_t end = grid.cell_start[row_start + xb + 1];
-      for (int32_t s = grid.cell_start[row_start + xa]; s < end; ++s) {
-        const int32_t j = grid.original_index(s);
-        if (j == seed_index) continue;
-        const Vec3<T> p = {T(grid.sorted_points[3 * s]), T(grid.sorted_points[3 * s + 1]),
-                           T(grid.sorted_points[3 * s + 2])};
-        const Vec3<T> r = p - seed;
-        const T r2 = squared_norm(r);
-        if (r2 == T(0)) {  // an exact copy: the lowest index keeps the cell
-          if (j < seed_index) return kDuplicate;
-          continue;
+      const int32_t first = grid_coordinate(reach_lo, row.origin, h, row.dim);
+      const int32_t last = grid_coordinate(reach_hi, row.origin, h, row.dim);
+      const int32_t row_start = first_cell + c_slab * slab.stride + c_across * across.stride;
+      // Along x the row's cells are one range of the sorted points; along y
+      // or z, a range a cell.
+      const int32_t ranges = row_axis == 0 ? 1 : last - first + 1;
+      for (int32_t range = 0; range < ranges; ++range) {
+        const int32_t cell_from = row_start + (first + range) * row.stride;
+        const int32_t cell_to = row_axis == 0 ? row_start + last : cell_from;
+        const int32_t end = grid.cell_start[cell_to + 1];
+        for (int32_t s = grid.cell_start[cell_from]; s < end; ++s) {
+          const int32_t j = grid.original_index(s);
+          if (j == seed_index) continue;
+          const Vec3<T> p = {T(grid.sorted_points[3 * s]), T(grid.sorted_points[3 * s + 1]),
+                             T(grid.sorted_points[3 * s + 2])};
+          const Vec3<T> r = p - seed;
+          const T r2 = squared_norm(r);
+          if (r2 == T(0)) {  // an exact copy: the lowest index keeps the cell
+            if (j < seed_index) return kDuplicate;
+            continue;
+          }
+          if (r2 < skip_below || cell.security_radius_reached(r2) || cell.has_bisector(r)) continue;
+          if (!cell.clip_by_bisector(r)) return cell.status;
+          clipped = clipped || cell.has_bisector(r);  // a plane is added where it cuts
         }
-        if (r2 < skip_below || cell.security_radius_reached(r2) || cell.has_bisector(r)) continue;
-        if (!cell.clip_by_bisector(r)) return cell.status;
-        clipped = clipped || cell.has_bisector(r);  // a plane is added where it cuts
       }
     }
   }
@@ -163,7 +197,7 @@ TV_HD int8_t finish_by_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& wher
     if (status != kSuccess || !clipped) return status;
     // The listed neighbours' bisectors come back with the list (a few at
     // about the last one's distance are also collected; has_bisector skips them).
-    const int count = cell.bounding_neighbors(listed_dist2 * (T(1) - T(1e-4)), offset, offset2);
+    const int count = cell.bounding_neighbors(unlisted_from(listed_dist2), offset, offset2);
     restart();
     further = 0;
     for (int i = 0; i < count; ++i) {
