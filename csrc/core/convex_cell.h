@@ -394,6 +394,29 @@ struct BitSet {
   TV_HD Cursor cursor() const { return {*this, 0, word[0]}; }
 };
 
+// Inserts `offset` (with its squared norm) into the `count` neighbours
+// r[], r2[] sorted by increasing (distance, x, y, z), unless it is nearer
+// than sqrt(nearest2): the cells' bounding_neighbors (an insertion sort of a
+// few dozen at most).
+template <typename T>
+TV_HD void insert_by_distance(Vec3<T> offset, T nearest2, Vec3<T>* r, T* r2, int& count) {
+  const T offset2 = squared_norm(offset);
+  if (offset2 < nearest2) return;
+  const auto before = [](T a2, Vec3<T> a, T b2, Vec3<T> b) {
+    if (a2 < b2 || b2 < a2) return a2 < b2;
+    if (a.x < b.x || b.x < a.x) return a.x < b.x;
+    if (a.y < b.y || b.y < a.y) return a.y < b.y;
+    return a.z < b.z;
+  };
+  int at = count++;
+  for (; at > 0 && before(offset2, offset, r2[at - 1], r[at - 1]); --at) {
+    r[at] = r[at - 1];
+    r2[at] = r2[at - 1];
+  }
+  r[at] = offset;
+  r2[at] = offset2;
+}
+
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES>
 struct ConvexCell {
   using Scalar = T;
@@ -499,25 +522,9 @@ struct ConvexCell {
       const uint32_t corners = triangle[t].corners;
       for (int e = 0; e < 3; ++e) used.set(corner(corners, e));
     }
-    const auto before = [](T a2, Vec3<T> a, T b2, Vec3<T> b) {
-      if (a2 < b2 || b2 < a2) return a2 < b2;
-      if (a.x < b.x || b.x < a.x) return a.x < b.x;
-      if (a.y < b.y || b.y < a.y) return a.y < b.y;
-      return a.z < b.z;
-    };
     int count = 0;
     for (int q = kBoxPlanes; q < num_planes; ++q) {
-      if (!used.test(q)) continue;
-      const Vec3<T> offset = neighbor[q - kBoxPlanes];
-      const T offset2 = squared_norm(offset);
-      if (offset2 < nearest2) continue;
-      int at = count++;  // insertion sort: a few dozen at most
-      for (; at > 0 && before(offset2, offset, r2[at - 1], r[at - 1]); --at) {
-        r[at] = r[at - 1];
-        r2[at] = r2[at - 1];
-      }
-      r[at] = offset;
-      r2[at] = offset2;
+      if (used.test(q)) insert_by_distance(neighbor[q - kBoxPlanes], nearest2, r, r2, count);
     }
     return count;
   }

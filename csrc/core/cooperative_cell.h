@@ -52,7 +52,7 @@ struct CooperativeCell {
   // Always from the box: a tetrahedron start made this cell's clip kernel
   // 22% slower on white noise (H100; see start_tetrahedron).
   static constexpr bool kTetrahedronStart = false;
-  static constexpr bool kVertexBalls = false;       // the sweep runs on thread cells only (vertex_balls.h)
+  static constexpr bool kVertexBalls = true;        // vertex_count, vertex (vertex_balls.h)
   using Arrays = CooperativeCellArrays<T, MAX_PLANES, MAX_TRIANGLES>;
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static_assert(MAX_TRIANGLES <= 65535, "slots are stored as uint16");
@@ -103,6 +103,40 @@ struct CooperativeCell {
 
   TV_HD bool security_radius_reached(T neighbor_dist2) const {
     return beyond_security_radius(neighbor_dist2, radius2, tolerance);
+  }
+
+  // ConvexCell's accessors for the sweep (vertex_balls.h), on the shared
+  // arrays. Any lane may call them, each for its own arguments: they use no
+  // collective. A bisector's plane is kept, not its neighbour; its normal is
+  // minus the neighbour, exactly (bisector_plane).
+  TV_HD int vertex_count() const { return num_triangles; }
+  TV_HD Vec3<T> vertex(int t) const { return a.vertex[t].position; }
+  static constexpr int kMaxBisectors = MAX_PLANES - 6;
+  TV_HD Vec3<T> bisector_neighbor(int q) const {
+    const Vec3<T> normal = a.plane[q].normal;
+    return {-normal.x, -normal.y, -normal.z};
+  }
+  TV_HD bool has_bisector(Vec3<T> r) const {
+    for (int q = 6; q < num_planes; ++q) {
+      const Vec3<T> other = bisector_neighbor(q);
+      if (other.x == r.x && other.y == r.y && other.z == r.z) return true;
+    }
+    return false;
+  }
+  // ConvexCell::bounding_neighbors: each lane computes the same list.
+  TV_HD int bounding_neighbors(T nearest2, Vec3<T>* r, T* r2) const {
+    BitSet<(MAX_PLANES + 31) / 32> used;
+    used.clear();
+    for (int t = 0; t < num_triangles; ++t) {
+      const uint32_t corners = a.triangle[t];
+      for (int e = 0; e < 3; ++e) used.set(corner(corners, e));
+    }
+    int count = 0;
+    for (int q = 6; q < num_planes; ++q) {
+      if (!used.test(q)) continue;
+      insert_by_distance(bisector_neighbor(q), nearest2, r, r2, count);
+    }
+    return count;
   }
 
   // ConvexCell::clip_by_bisector, by the group: the same band widening, the

@@ -25,6 +25,8 @@ struct SingleLane {
   template <typename T>
   TV_HD T max(T value) const { return value; }
   template <typename T>
+  TV_HD T min(T value) const { return value; }
+  template <typename T>
   TV_HD T broadcast(T value, int /*lane*/) const { return value; }
 };
 
@@ -94,6 +96,14 @@ struct WarpLanes {
 #if defined(__CUDA_ARCH__)
     TV_UNROLL
     for (int offset = 16; offset > 0; offset /= 2) value = max_of(value, __shfl_xor_sync(kAll, value, offset));
+#endif
+    return value;
+  }
+  template <typename T>
+  TV_HD T min(T value) const {
+#if defined(__CUDA_ARCH__)
+    TV_UNROLL
+    for (int offset = 16; offset > 0; offset /= 2) value = min_of(value, __shfl_xor_sync(kAll, value, offset));
 #endif
     return value;
   }

@@ -53,6 +53,28 @@ TV_HD T unlisted_from(T listed_dist2) {
   return listed_dist2 * (T(1) - T(1e-4));
 }
 
+// Whether the bisector of the neighbour at r (relative to the seed, r2 =
+// |r|^2) may cut `cell`: whether a vertex v lies beyond it, r.v > r2 / 2.
+// The clip's predicate (classify) removes a vertex only where r.v exceeds
+// r2 (1/2 + band), the band at least the cell's tolerance; this test takes
+// every vertex within that tolerance and a rounding margin of the near side
+// too, so that it never turns away a point the clip would take. Any lane,
+// for its own r (no collective). In S: double for double-double.
+template <typename Cell, typename T>
+TV_HD bool may_cut(const Cell& cell, Vec3<T> r, T r2) {
+  using S = typename ChoiceScalar<T>::type;
+  const Vec3<S> offset = {S(r.x), S(r.y), S(r.z)};
+  const S offset2 = S(r2);
+  // The rounding of r.v is a few units of S's precision times |r| |v|.
+  const S slack = S(1e-4) * sqrt_of(offset2 * S(cell.radius2)) + S(cell.tolerance) * offset2;
+  const S threshold = S(0.5) * offset2 - slack;
+  for (int t = 0; t < cell.vertex_count(); ++t) {
+    const Vec3<T> v = cell.vertex(t);
+    if (dot(offset, Vec3<S>{S(v.x), S(v.y), S(v.z)}) > threshold) return true;
+  }
+  return false;
+}
+
 // Clips `cell` (relative to `seed`, point `seed_index` of the grid's
 // points) by every point of the grid in its vertices' balls. Points nearer
 // than `listed_dist2` were in the neighbour list that clipped the cell
@@ -62,17 +84,32 @@ TV_HD T unlisted_from(T listed_dist2) {
 // exact copy of the seed with a lower index), or the cell's status where a
 // clip failed; `clipped`: whether any point cut the cell.
 //
-// The rows run along the axis where the balls' bounding box spans the most
-// grid cells, so that it has the fewest rows: each row costs a pass over the
-// vertices. A hull cell of points in a box 3x wider than them reaches the
-// box's wall; along the wall's normal its balls span a cell or two of the
-// grid, across it all of it, and rows along that normal were ~100x as many.
+// The cell's lanes (a warp for a CooperativeCell on the GPU, one for a
+// ConvexCell) share the work: each row's pass over the vertices, and the
+// row's points, a point a lane, each tested against the cell as the batch
+// found it (may_cut; a point that cannot cut the cell cannot cut it once
+// smaller). The points that may cut are then clipped together, in the
+// grid's order, each tested again as it comes: the same clips, in the same
+// order, as one lane makes.
+//
+// The rows run along the axis that makes them cheapest (each costs a pass
+// over the vertices). A hull cell of points in a box 3x wider than them
+// reaches the box's wall; along the wall's normal its balls span a cell or
+// two of the grid, across it all of it, and rows along that normal (x) were
+// ~100x as many: 1M such points took 974 ms on an H100, 315 ms with rows
+// along the longest span. Clusters with voids, whose balls span about as
+// many cells along every axis, took 270 ms with rows along x and 355 ms
+// along the longest span (benchmarks/NOTES.md).
 template <typename Cell, typename io_t, typename T>
 TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, int32_t seed_index,
                                 Vec3<T> seed, T listed_dist2, bool& clipped) {
   // Which rows and cells to visit is decided in S (double for double-double:
   // a margin covers its rounding); the clips run in T.
   using S = typename ChoiceScalar<T>::type;
+  const auto lanes = cell.group();
+  constexpr int kLanes = decltype(lanes)::kCount;
+  const int lane = lanes.index();
+  const S infinity = S(1) / S(0);
   // Component a of a vector, by selects: indexed by a run-time axis, an
   // array would live in local memory on the GPU.
   const auto along = [](auto v, int a) { return a == 0 ? v.x : (a == 1 ? v.y : v.z); };
@@ -93,20 +130,28 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
   // The bounding box of the balls (each passes through the seed), as grid
   // coordinates [low, high] along each axis.
   Vec3<S> lo = {S(0), S(0), S(0)}, hi = {S(0), S(0), S(0)};
-  for (int t = 0; t < cell.vertex_count(); ++t) {
+  for (int t = lane; t < cell.vertex_count(); t += kLanes) {
     const Vec3<S> v = to_s(cell.vertex(t));
     const S radius = sqrt_of(squared_norm(v)) + margin;
     lo = {min_of(lo.x, v.x - radius), min_of(lo.y, v.y - radius), min_of(lo.z, v.z - radius)};
     hi = {max_of(hi.x, v.x + radius), max_of(hi.y, v.y + radius), max_of(hi.z, v.z + radius)};
   }
+  lo = {lanes.min(lo.x), lanes.min(lo.y), lanes.min(lo.z)};
+  hi = {lanes.max(hi.x), lanes.max(hi.y), lanes.max(hi.z)};
   const Vec3<int32_t> low = {grid_coordinate(lo.x, origin.x, h, dim.x), grid_coordinate(lo.y, origin.y, h, dim.y),
                              grid_coordinate(lo.z, origin.z, h, dim.z)};
   const Vec3<int32_t> high = {grid_coordinate(hi.x, origin.x, h, dim.x), grid_coordinate(hi.y, origin.y, h, dim.y),
                               grid_coordinate(hi.z, origin.z, h, dim.z)};
-  // The row axis (x on a tie: its cells are contiguous in the grid's order,
-  // one range a row), then the two across it, the outer one last.
-  const Vec3<int32_t> span = high - low;
-  const int row_axis = span.x >= span.y && span.x >= span.z ? 0 : (span.y >= span.z ? 1 : 2);
+  // The row axis, by the rows' cost: a pass over the vertices a row, plus a
+  // range of sorted points a row along x (its cells are contiguous in the
+  // grid's order) but a range a cell along y or z. The points visited are
+  // about the same either way. Then the two axes across it, the outer last.
+  const Vec3<int64_t> cells = {high.x - low.x + 1, high.y - low.y + 1, high.z - low.z + 1};
+  const int64_t vertices = cell.vertex_count();
+  const int64_t cost_x = cells.y * cells.z * (vertices + 1);
+  const int64_t cost_y = cells.x * cells.z * (vertices + cells.y);
+  const int64_t cost_z = cells.x * cells.y * (vertices + cells.z);
+  const int row_axis = cost_x <= cost_y && cost_x <= cost_z ? 0 : (cost_y <= cost_z ? 1 : 2);
   const int inner = row_axis == 1 ? 0 : 1;
   const int outer = row_axis == 2 ? 0 : 2;
   // Each axis's numbers for the loops below, taken out once.
@@ -131,7 +176,7 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
       // The part of the row that meets a ball of the cell as it is now.
       S reach_lo = S(0), reach_hi = S(0);
       bool meets = false;
-      for (int t = 0; t < cell.vertex_count(); ++t) {
+      for (int t = lane; t < cell.vertex_count(); t += kLanes) {
         const Vec3<S> v = to_s(cell.vertex(t));
         const S gap_slab = slab_gap(along(v, outer), slab.origin, h, c_slab, margin);
         const S gap_across = slab_gap(along(v, inner), across.origin, h, c_across, margin);
@@ -143,7 +188,9 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
         reach_hi = meets ? max_of(reach_hi, v_row + reach) : v_row + reach;
         meets = true;
       }
-      if (!meets) continue;
+      if (!lanes.any(meets)) continue;
+      reach_lo = lanes.min(meets ? reach_lo : infinity);
+      reach_hi = lanes.max(meets ? reach_hi : -infinity);
       const int32_t first = grid_coordinate(reach_lo, row.origin, h, row.dim);
       const int32_t last = grid_coordinate(reach_hi, row.origin, h, row.dim);
       const int32_t row_start = first_cell + c_slab * slab.stride + c_across * across.stride;
@@ -154,20 +201,34 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
         const int32_t cell_from = row_start + (first + range) * row.stride;
         const int32_t cell_to = row_axis == 0 ? row_start + last : cell_from;
         const int32_t end = grid.cell_start[cell_to + 1];
-        for (int32_t s = grid.cell_start[cell_from]; s < end; ++s) {
-          const int32_t j = grid.original_index(s);
-          if (j == seed_index) continue;
-          const Vec3<T> p = {T(grid.sorted_points[3 * s]), T(grid.sorted_points[3 * s + 1]),
-                             T(grid.sorted_points[3 * s + 2])};
-          const Vec3<T> r = p - seed;
-          const T r2 = squared_norm(r);
-          if (r2 == T(0)) {  // an exact copy: the lowest index keeps the cell
-            if (j < seed_index) return kDuplicate;
-            continue;
+        for (int32_t batch_start = grid.cell_start[cell_from]; batch_start < end; batch_start += kLanes) {
+          const int32_t s = batch_start + lane;  // this lane's point
+          Vec3<T> r = {T(0), T(0), T(0)};
+          T r2 = T(0);
+          bool copy_kept_elsewhere = false, candidate = false;
+          if (s < end) {
+            const int32_t j = grid.original_index(s);
+            const Vec3<T> p = {T(grid.sorted_points[3 * s]), T(grid.sorted_points[3 * s + 1]),
+                               T(grid.sorted_points[3 * s + 2])};
+            r = p - seed;
+            r2 = squared_norm(r);
+            // An exact copy of the seed: the lowest index keeps the cell.
+            copy_kept_elsewhere = r2 == T(0) && j < seed_index;
+            candidate = j != seed_index && !(r2 == T(0)) && !(r2 < skip_below) && !cell.security_radius_reached(r2) &&
+                        may_cut(cell, r, r2) && !cell.has_bisector(r);
           }
-          if (r2 < skip_below || cell.security_radius_reached(r2) || cell.has_bisector(r)) continue;
-          if (!cell.clip_by_bisector(r)) return cell.status;
-          clipped = clipped || cell.has_bisector(r);  // a plane is added where it cuts
+          if (lanes.any(copy_kept_elsewhere)) return kDuplicate;
+          uint32_t pending = lanes.ballot(candidate);
+          if (pending == 0u) continue;
+          lanes.sync();  // the lanes' reads of the cell before the clips write it
+          for (; pending != 0u; pending &= pending - 1u) {
+            const int from = lowest_bit(pending);
+            const Vec3<T> offer = {lanes.broadcast(r.x, from), lanes.broadcast(r.y, from), lanes.broadcast(r.z, from)};
+            // As one lane would test it now: earlier clips of the batch may have settled it.
+            if (cell.security_radius_reached(squared_norm(offer)) || cell.has_bisector(offer)) continue;
+            if (!cell.clip_by_bisector(offer)) return cell.status;
+            clipped = clipped || cell.has_bisector(offer);  // a plane is added where it cuts
+          }
         }
       }
     }
@@ -198,6 +259,7 @@ TV_HD int8_t finish_by_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& wher
     // The listed neighbours' bisectors come back with the list (a few at
     // about the last one's distance are also collected; has_bisector skips them).
     const int count = cell.bounding_neighbors(unlisted_from(listed_dist2), offset, offset2);
+    cell.group().sync();  // every lane has read the cell before restart() writes it
     restart();
     further = 0;
     for (int i = 0; i < count; ++i) {

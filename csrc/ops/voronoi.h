@@ -15,6 +15,7 @@
 #include <cstddef>
 #include <cstdlib>
 #include <cstring>
+#include <limits>
 #include <tuple>
 #include <type_traits>
 #include <vector>
@@ -86,8 +87,8 @@ template <typename io_t>
 struct VertexBallsGridMember<io_t, false> {};
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
-// kVertexBalls (thread cells only), a cell whose neighbours run out before
-// the radius of security is finished on the grid (core::finish_by_vertex_balls).
+// kVertexBalls, a cell whose neighbours run out before the radius of
+// security is finished on the grid (core::finish_by_vertex_balls).
 template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false>
 struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
@@ -295,7 +296,7 @@ inline bool tetrahedron_start() {
 
 // Clips a chunk of cells. With `vertex_balls` (the grid of `points` by
 // position), cells whose neighbours run out before the radius of security
-// are finished on it (ClipFunctor's kVertexBalls), by thread cells.
+// are finished on it (ClipFunctor's kVertexBalls).
 template <typename Exec, typename io_t, typename T, int MAX_PLANES>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
@@ -320,24 +321,31 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size, k and the
   // pilot's neighbour spread, and TORCHVOR_CELLS=thread|cooperative
-  // overrides it (use_cooperative). Cells finished on the grid are thread
-  // cells, whatever the pass.
+  // overrides it (use_cooperative). Cells finished on the grid vary the most
+  // (their sweeps' lengths): the backend's choice for the widest spread,
+  // warps on the GPU (each sweeps its cell's rows and points together,
+  // where a thread's cell waited on its own loads: vertex_balls.h).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
-  if constexpr (std::is_same<T, core::DoubleDouble>::value) {
-    if (vertex_balls != nullptr) {
-      Exec::for_each(cells.size(0), functor(std::true_type{}));
+  const auto clip = [&](auto finish_by_vertex_balls) {
+    if constexpr (std::is_same<T, core::DoubleDouble>::value) {
+      Exec::for_each(cells.size(0), functor(finish_by_vertex_balls));
     } else {
-      Exec::for_each(cells.size(0), functor(std::false_type{}));
+      const c10::optional<double> spread =
+          decltype(finish_by_vertex_balls)::value ? c10::optional<double>(std::numeric_limits<double>::infinity())
+                                                  : neighbor_spread;
+      if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
+        Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(
+            cells.size(0), functor(finish_by_vertex_balls));
+      } else {
+        Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(finish_by_vertex_balls));
+      }
     }
-  } else if (vertex_balls != nullptr) {
-    Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::true_type{}));
-  } else if (use_cooperative("TORCHVOR_CELLS",
-                             Exec::cooperative_cells(cells.size(0), neighbors.size(1), neighbor_spread))) {
-    Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(
-        cells.size(0), functor(std::false_type{}));
+  };
+  if (vertex_balls != nullptr) {
+    clip(std::true_type{});
   } else {
-    Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::false_type{}));
+    clip(std::false_type{});
   }
 }
 
