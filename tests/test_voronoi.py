@@ -1267,29 +1267,29 @@ def test_cuda_warps_claim_many_cells(monkeypatch, dtype, gen):
 
 def clip_kernels_run(call):
     """Which clip kernels a CUDA call launched: 'thread' (a thread per cell,
-    CudaExec::for_each_cell), 'warp' (a warp per cell, for_each_cooperative)
-    and 'vertex balls' (thread cells finished on the grid: ClipFunctor's
-    kVertexBalls, the retries past 256 neighbours)."""
+    CudaExec::for_each_cell), 'warp' (a warp per cell, for_each_cooperative),
+    and 'vertex balls, warp' or 'vertex balls, thread' (cells finished on the
+    grid, ClipFunctor's kVertexBalls: the retries past 256 neighbours)."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         result = call()
         torch.cuda.synchronize()
-    names = [event.key for event in prof.key_averages() if "ClipFunctor" in event.key]
-    vertex_balls = {name for name in names if re.search(r"ClipFunctor<[^>]*,\s*true>", name)}
-    kinds = {"vertex balls" for _ in vertex_balls}
-    names = [name for name in names if name not in vertex_balls]
-    kinds |= {"thread" for name in names if "for_each_claimed_kernel" in name}
-    kinds |= {"warp" for name in names if "for_each_cooperative_claimed_kernel" in name}
+    kinds = set()
+    for name in (event.key for event in prof.key_averages() if "ClipFunctor" in event.key):
+        cells = "warp" if "for_each_cooperative_claimed_kernel" in name else "thread"
+        finished_on_grid = re.search(r"ClipFunctor<[^>]*,\s*true>", name) is not None
+        kinds.add(f"vertex balls, {cells}" if finished_on_grid else cells)
     return result, kinds
 
 
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")
 @pytest.mark.parametrize("kind", ["voids", "wide box"])
-def test_cuda_vertex_balls_match_cpu(dtype, seed, kind):
+def test_cuda_vertex_balls_match_cpu(dtype, seed, kind, cells_impl):
     """The cells finished on the grid by their vertices' balls (past 256
     neighbours: clusters with voids between them, a box three times as wide
-    as the points) run as thread cells on CUDA and equal the CPU's: the same
+    as the points) run on CUDA as warp cells (by default) or thread cells
+    (TORCHVOR_CELLS=thread) and equal the CPU's thread cells: the same
     statuses and integrals up to rounding."""
     if kind == "voids":
         points = samples.clustered(20000, clusters=20, spread=0.02, seed=seed, dtype=dtype)
@@ -1298,9 +1298,11 @@ def test_cuda_vertex_balls_match_cpu(dtype, seed, kind):
         points = samples.white_noise(20000, seed=seed, dtype=dtype)
         box = ([-1.0, -1.0, -1.0], [2.0, 2.0, 2.0])
     gpu, launched = clip_kernels_run(lambda: run(points.cuda(), box))
-    assert "vertex balls" in launched
+    assert ("vertex balls, warp" if cells_impl == "cooperative" else "vertex balls, thread") in launched
     check_global(gpu, points.cuda(), [box_of(points.cuda(), box)], dtype)
-    cpu = run(points, box)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("TORCHVOR_CELLS", "thread")
+        cpu = run(points, box)
     assert_same_integrals(type(cpu)(*(t.cpu() for t in gpu)), cpu, dtype)
 
 
@@ -1324,7 +1326,7 @@ def test_cuda_cells_chosen_by_neighbor_spread(dtype, gen, seed, kind, k):
     gpu, launched = clip_kernels_run(lambda: torchvor.voronoi(points.cuda(), UNIT, k=k))
     # The pilot and small retry passes are warps whatever the kind; a cell of
     # white noise near a box corner may need more than 256 neighbours.
-    assert launched - {"vertex balls"} == ({"thread", "warp"} if kind == "jittered" else {"warp"})
+    assert launched - {"vertex balls, warp"} == ({"thread", "warp"} if kind == "jittered" else {"warp"})
     check_global(gpu, points.cuda(), [box_of(points.cuda(), UNIT)], dtype)
     cpu = torchvor.voronoi(points, UNIT, k=k)
     assert torch.equal(cpu.status, gpu.status.cpu())
