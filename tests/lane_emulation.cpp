@@ -3,7 +3,8 @@
 // sum, max, broadcast) meet at a barrier. The library runs that cell on 32
 // lanes of a warp on the GPU and on one lane on the CPU; this program runs it
 // on 8, 16 and 32 lanes and checks that every cell gets the thread cell's
-// (convex_cell.h) status and neighbour count, and its volume up to rounding.
+// (convex_cell.h) status and neighbour count, and its volume up to rounding,
+// also where the cell is finished by its vertices' balls (vertex_balls.h).
 // Built and run by tests/test_lane_emulation.py:
 //   lane_emulation SEED CELLS   (exit status 0: every cell agreed)
 #include <algorithm>
@@ -87,6 +88,15 @@ struct EmulatedLanes {
     return T(largest);
   }
   template <typename T>
+  T min(T value) const {
+    double smallest = 0.0;
+    gather(double(value), [&](const double* values) {
+      smallest = values[0];
+      for (int l = 1; l < N; ++l) smallest = std::min(smallest, values[l]);
+    });
+    return T(smallest);
+  }
+  template <typename T>
   T broadcast(T value, int source) const {
     static_assert(sizeof(T) <= 4 || std::is_floating_point<T>::value, "exact through a double");
     double chosen = 0.0;
@@ -130,12 +140,50 @@ std::vector<int32_t> nearest(const Points& points, int seed, int k) {
   return indices;
 }
 
+// Points sorted by the cells of a grid over the unit cube, about two a cell,
+// as voronoi's grid holds them (numbered by position: no index array), for
+// the cells finished by their vertices' balls (vertex_balls.h).
+struct SortedGrid {
+  Points points;  // in the grid's order
+  std::vector<int32_t> cell_start;
+  float origin[3] = {0.f, 0.f, 0.f};
+  float cell_size = 1.f;
+  int32_t dims[3] = {1, 1, 1};
+  int32_t cell_offset = 0;
+
+  explicit SortedGrid(const Points& unsorted) {
+    const int side = std::max(1, int(std::cbrt(unsorted.count() / 2.0)));
+    cell_size = 1.f / float(side);
+    for (int a = 0; a < 3; ++a) dims[a] = side;
+    const auto cell_of = [&](int i) {
+      int32_t c[3];
+      for (int a = 0; a < 3; ++a) c[a] = core::grid_coordinate(unsorted.xyz[3 * i + a], 0.f, cell_size, side);
+      return (c[2] * side + c[1]) * side + c[0];
+    };
+    cell_start.assign(side * side * side + 1, 0);
+    for (int i = 0; i < unsorted.count(); ++i) ++cell_start[cell_of(i) + 1];
+    for (int c = 0; c < side * side * side; ++c) cell_start[c + 1] += cell_start[c];
+    std::vector<int32_t> next(cell_start.begin(), cell_start.end() - 1);
+    points.xyz.resize(unsorted.xyz.size());
+    for (int i = 0; i < unsorted.count(); ++i) {
+      const int at = next[cell_of(i)]++;
+      for (int a = 0; a < 3; ++a) points.xyz[3 * at + a] = unsorted.xyz[3 * i + a];
+    }
+  }
+  core::VertexBallGrid<float> vertex_balls() const {
+    return {{points.xyz.data(), nullptr, cell_start.data(), origin, &cell_size, dims, &cell_offset}, 0};
+  }
+};
+
 // Cells `first` .. first + cells - 1 by N lanes against one thread; returns the
-// cells that disagree.
+// cells that disagree. With `grid` (its points), the cells whose k
+// neighbours run out are finished by their vertices' balls, in `box`.
 template <int N, int MAX_PLANES>
-int compare(const char* name, const Points& points, int first, int cells, int k) {
+int compare(const char* name, const Points& points, int first, int cells, int k,
+            const SortedGrid* grid = nullptr, const float (&box)[6] = {0.f, 0.f, 0.f, 1.f, 1.f, 1.f}) {
   constexpr int kMaxTriangles = 2 * MAX_PLANES;
-  const float box[6] = {0.f, 0.f, 0.f, 1.f, 1.f, 1.f};
+  const core::VertexBallGrid<float> vertex_balls = grid != nullptr ? grid->vertex_balls() : core::VertexBallGrid<float>{};
+  const core::VertexBallGrid<float>* finish = grid != nullptr ? &vertex_balls : nullptr;
   const float tolerance = core::ClipTolerance<float>::value;
   int disagreeing = 0;
   for (int seed = first; seed < first + cells; ++seed) {
@@ -143,7 +191,7 @@ int compare(const char* name, const Points& points, int first, int cells, int k)
     const int count = int(neighbors.size());
     core::ConvexCell<float, MAX_PLANES, kMaxTriangles> thread_cell;
     const core::CellIntegrals<float> expected = core::compute_cell(
-        thread_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, 0);
+        thread_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, 0, true, finish);
     core::CooperativeCellArrays<float, MAX_PLANES, kMaxTriangles> arrays;
     std::memset(static_cast<void*>(&arrays), 0xff, sizeof(arrays));  // poison: unwritten slots show
     Board board(N);
@@ -153,7 +201,8 @@ int compare(const char* name, const Points& points, int first, int cells, int k)
       lanes.emplace_back([&, l] {
         core::CooperativeCell<float, MAX_PLANES, kMaxTriangles, EmulatedLanes<N>> cell(
             arrays, EmulatedLanes<N>{l, &board});
-        got[l] = core::compute_cell(cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, 0);
+        got[l] = core::compute_cell(cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, 0,
+                                    true, finish);
       });
     }
     for (std::thread& lane : lanes) lane.join();
@@ -173,11 +222,19 @@ int compare(const char* name, const Points& points, int first, int cells, int k)
 }
 
 template <int N>
-int compare_all(const Points& white, const Points& clustered, int cells) {
+int compare_all(const Points& white, const Points& clustered, const SortedGrid& white_grid,
+                const SortedGrid& clustered_grid, int cells) {
+  constexpr float wide_box[6] = {-1.f, -1.f, -1.f, 2.f, 2.f, 2.f};
+  // A swept cell makes thousands of collectives, each a barrier round trip here.
+  const int swept = std::max(1, cells / 3);
   return compare<N, 32>("white noise", white, 0, cells, 40) +
          compare<N, 64>("white noise", white, cells, cells, 90) +
          compare<N, 32>("clusters", clustered, 0, cells, 40) +
-         compare<N, 32>("white noise, k=6", white, 2 * cells, cells, 6);  // most cells run out of neighbours
+         compare<N, 32>("white noise, k=6", white, 2 * cells, cells, 6) +  // most cells run out of neighbours
+         // ... and are finished on the grid (voronoi's vertex-ball passes run at 160 planes)
+         compare<N, 160>("clusters, k=6, vertex balls", clustered_grid.points, 0, swept, 6, &clustered_grid) +
+         compare<N, 160>("white noise in a box 3x wide, k=6, vertex balls", white_grid.points, 0, swept, 6,
+                         &white_grid, wide_box);
 }
 
 int main(int argc, char** argv) {
@@ -200,8 +257,10 @@ int main(int argc, char** argv) {
   }
   // The duplicates' cells (the last 50 white points) come first.
   std::rotate(white.xyz.begin(), white.xyz.end() - 3 * 50, white.xyz.end());
-  const int disagreeing = compare_all<8>(white, clustered, cells) + compare_all<16>(white, clustered, cells) +
-                          compare_all<32>(white, clustered, cells);
+  const SortedGrid white_grid(white), clustered_grid(clustered);
+  const int disagreeing = compare_all<8>(white, clustered, white_grid, clustered_grid, cells) +
+                          compare_all<16>(white, clustered, white_grid, clustered_grid, cells) +
+                          compare_all<32>(white, clustered, white_grid, clustered_grid, cells);
   std::printf("seed %u: %d cells per case, %d disagreeing\n", seed, cells, disagreeing);
   return disagreeing == 0 ? 0 : 1;
 }

@@ -86,6 +86,13 @@ struct VertexBallsGridMember {
 template <typename io_t>
 struct VertexBallsGridMember<io_t, false> {};
 
+// The planes a cell of a vertex-ball pass may hold: those passes run at the
+// largest tier only, whatever the cells asked for before. Their cells are
+// few (5282 of 1M points in a box 3x wide, the most measured), and a
+// kernel per tier and precision would be three times as many vertex-ball
+// kernels to compile.
+constexpr int kVertexBallPlanes = 160;
+
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
 // kVertexBalls, a cell whose neighbours run out before the radius of
 // security is finished on the grid (core::finish_by_vertex_balls).
@@ -297,14 +304,14 @@ inline bool tetrahedron_start() {
 // Clips a chunk of cells. With `vertex_balls` (the grid of `points` by
 // position), cells whose neighbours run out before the radius of security
 // are finished on it (ClipFunctor's kVertexBalls).
-template <typename Exec, typename io_t, typename T, int MAX_PLANES>
+template <typename Exec, typename io_t, typename T, int MAX_PLANES, bool kVertexBalls>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
                 bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
                 PositionOutputs& out) {
-  const auto functor = [&](auto finish_by_vertex_balls) {
-    constexpr bool kVertexBalls = decltype(finish_by_vertex_balls)::value;
+  static_assert(!kVertexBalls || MAX_PLANES == kVertexBallPlanes, "vertex-ball passes run at the largest tier");
+  const auto functor = [&]() {
     ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls> clip{
         {},
         points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
@@ -327,25 +334,17 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // where a thread's cell waited on its own loads: vertex_balls.h).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
-  const auto clip = [&](auto finish_by_vertex_balls) {
-    if constexpr (std::is_same<T, core::DoubleDouble>::value) {
-      Exec::for_each(cells.size(0), functor(finish_by_vertex_balls));
-    } else {
-      const c10::optional<double> spread =
-          decltype(finish_by_vertex_balls)::value ? c10::optional<double>(std::numeric_limits<double>::infinity())
-                                                  : neighbor_spread;
-      if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
-        Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(
-            cells.size(0), functor(finish_by_vertex_balls));
-      } else {
-        Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(finish_by_vertex_balls));
-      }
-    }
-  };
-  if (vertex_balls != nullptr) {
-    clip(std::true_type{});
+  if constexpr (std::is_same<T, core::DoubleDouble>::value) {
+    Exec::for_each(cells.size(0), functor());
   } else {
-    clip(std::false_type{});
+    const c10::optional<double> spread =
+        kVertexBalls ? c10::optional<double>(std::numeric_limits<double>::infinity()) : neighbor_spread;
+    if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
+      Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
+                                                                                          functor());
+    } else {
+      Exec::for_each_cell(cells.size(0), neighbors.size(1), functor());
+    }
   }
 }
 
@@ -355,10 +354,16 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
                      const at::Tensor& neighbors, int tier, const Grid* vertex_balls,
                      c10::optional<double> neighbor_spread, PositionOutputs& out) {
   constexpr bool column_major = Exec::kColumnMajorNeighbors;
+  if (vertex_balls != nullptr) {
+    TORCH_CHECK(tier == 2, "torchvor: internal error: a vertex-ball pass below the largest tier");
+    clip_chunk<Exec, io_t, T, kVertexBallPlanes, true>(points, box, batch, cells, neighbors, column_major, 0, false,
+                                                        vertex_balls, neighbor_spread, out);
+    return;
+  }
   switch (tier) {
-    case 0: clip_chunk<Exec, io_t, T, 32>(points, box, batch, cells, neighbors, column_major, 0, false, vertex_balls, neighbor_spread, out); break;
-    case 1: clip_chunk<Exec, io_t, T, 64>(points, box, batch, cells, neighbors, column_major, 0, false, vertex_balls, neighbor_spread, out); break;
-    default: clip_chunk<Exec, io_t, T, 160>(points, box, batch, cells, neighbors, column_major, 0, false, vertex_balls, neighbor_spread, out); break;
+    case 0: clip_chunk<Exec, io_t, T, 32, false>(points, box, batch, cells, neighbors, column_major, 0, false, nullptr, neighbor_spread, out); break;
+    case 1: clip_chunk<Exec, io_t, T, 64, false>(points, box, batch, cells, neighbors, column_major, 0, false, nullptr, neighbor_spread, out); break;
+    default: clip_chunk<Exec, io_t, T, 160, false>(points, box, batch, cells, neighbors, column_major, 0, false, nullptr, neighbor_spread, out); break;
   }
 }
 
@@ -378,10 +383,17 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
   PositionOutputs part;
   part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
   part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
-  clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160>(
-      cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
-      /*band_widenings=*/6, /*rows_by_step=*/true, vertex_balls != nullptr ? &vertex_balls_cpu : nullptr,
-      /*neighbor_spread=*/c10::nullopt, part);
+  const auto clip = [&](auto finish_by_vertex_balls) {
+    clip_chunk<cpu::CpuExec, io_t, core::DoubleDouble, 160, decltype(finish_by_vertex_balls)::value>(
+        cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
+        /*band_widenings=*/6, /*rows_by_step=*/true, vertex_balls != nullptr ? &vertex_balls_cpu : nullptr,
+        /*neighbor_spread=*/c10::nullopt, part);
+  };
+  if (vertex_balls != nullptr) {
+    clip(std::true_type{});
+  } else {
+    clip(std::false_type{});
+  }
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
   out.status.index_copy_(0, rows, part.status.to(out.status.device()));
@@ -592,6 +604,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
       }
     }
     if (ask[1]) next.tier = std::min(pass.tier + 1, 2);
+    if (next.vertex_balls) next.tier = 2;  // kVertexBallPlanes
     if (ask[2]) {
       next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
                                                                            : Precision::kDoubleDouble;
