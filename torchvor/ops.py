@@ -208,11 +208,13 @@ def voronoi(
     more than 256 neighbours is therefore finished otherwise: from its 256
     nearest, it is clipped by every point of the kNN grid that lies in the
     ball around one of its vertices through the seed (only such a point can
-    cut it), until none is left. On 2 CPU cores, 50K points in 20 Gaussian
-    clusters of 0.02 take 0.7 s (3.7 s with the radius of security alone),
-    and 50K white-noise points in a cube three times as wide as theirs 0.4 s
-    (19 s; 0.25 s in their own cube). The cost of such a cell grows with the
-    grid cells its vertices' balls cover.
+    cut it), until none is left; on CUDA a warp sweeps each such cell. On 2
+    CPU cores, 50K points in 20 Gaussian clusters of 0.02 take 0.9-1.0 s (3.7
+    s with the radius of security alone), and 50K white-noise points in a
+    cube three times as wide as theirs 0.55 s (19 s; 0.25 s in their own
+    cube). On an H100, 1M such points take 118 ms and 81 ms (23 ms in their
+    own cube). The cost of such a cell grows with the grid cells its
+    vertices' balls cover.
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``.
