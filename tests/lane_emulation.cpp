@@ -72,29 +72,15 @@ struct EmulatedLanes {
   void set_shared_bits(uint32_t* word, uint32_t bits) const { __atomic_fetch_or(word, bits, __ATOMIC_SEQ_CST); }
   template <typename T>
   T sum(T value) const {
-    double total = 0.0;  // every lane adds in the same order
-    gather(double(value), [&](const double* values) {
-      for (int l = 0; l < N; ++l) total += values[l];
-    });
-    return T(total);
+    return fold(value, [](double a, double b) { return a + b; });  // every lane adds in the same order
   }
   template <typename T>
   T max(T value) const {
-    double largest = 0.0;
-    gather(double(value), [&](const double* values) {
-      largest = values[0];
-      for (int l = 1; l < N; ++l) largest = std::max(largest, values[l]);
-    });
-    return T(largest);
+    return fold(value, [](double a, double b) { return std::max(a, b); });
   }
   template <typename T>
   T min(T value) const {
-    double smallest = 0.0;
-    gather(double(value), [&](const double* values) {
-      smallest = values[0];
-      for (int l = 1; l < N; ++l) smallest = std::min(smallest, values[l]);
-    });
-    return T(smallest);
+    return fold(value, [](double a, double b) { return std::min(a, b); });
   }
   template <typename T>
   T broadcast(T value, int source) const {
@@ -105,6 +91,17 @@ struct EmulatedLanes {
   }
 
  private:
+  // The lanes' values combined in lane order, in every lane.
+  template <typename T, typename Combine>
+  T fold(T value, Combine&& combine) const {
+    double result = 0.0;
+    gather(double(value), [&](const double* values) {
+      result = values[0];
+      for (int l = 1; l < N; ++l) result = combine(result, values[l]);
+    });
+    return T(result);
+  }
+
   // Every lane posts `mine`, reads all the lanes' values, then waits until
   // every lane has read them (the board is reused by the next collective).
   template <typename Read>
