@@ -839,7 +839,7 @@ def test_clusters_with_voids(monkeypatch, device, dtype, seed, gen):
     edge reach far into the void, and the radius of security would ask for
     every point within twice their farthest vertex, whole clusters. Past 256
     neighbours a retry finishes them by the empty balls of their vertices
-    instead (core::clip_by_vertex_balls): the exact cells, the largest ones
+    instead (core::finish_by_vertex_balls): the exact cells, the largest ones
     (in the voids) checked against the oracle, and the same cells, up to
     rounding, as asking for neighbours until the radius of security holds."""
     points = samples.clustered(3000, clusters=20, spread=0.02, seed=seed, dtype=torch.float64).to(dtype).to(device)

@@ -422,7 +422,6 @@ struct ConvexCell {
   using Scalar = T;
   using Lanes = SingleLane;  // one thread computes the cell
   static constexpr bool kTetrahedronStart = true;  // init_tetrahedron (start_tetrahedron)
-  static constexpr bool kVertexBalls = true;       // vertex_count, vertex (vertex_balls.h)
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
@@ -497,7 +496,7 @@ struct ConvexCell {
     return {position, squared_norm(position)};
   }
 
-  // The cell's vertices (clip_by_vertex_balls sweeps their balls).
+  // The cell's vertices (sweep_vertex_balls sweeps their balls).
   TV_HD int vertex_count() const { return num_triangles; }
   TV_HD Vec3<T> vertex(int t) const { return triangle[t].position; }
   static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;

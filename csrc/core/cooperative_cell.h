@@ -52,7 +52,6 @@ struct CooperativeCell {
   // Always from the box: a tetrahedron start made this cell's clip kernel
   // 22% slower on white noise (H100; see start_tetrahedron).
   static constexpr bool kTetrahedronStart = false;
-  static constexpr bool kVertexBalls = true;        // vertex_count, vertex (vertex_balls.h)
   using Arrays = CooperativeCellArrays<T, MAX_PLANES, MAX_TRIANGLES>;
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static_assert(MAX_TRIANGLES <= 65535, "slots are stored as uint16");

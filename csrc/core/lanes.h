@@ -85,27 +85,15 @@ struct WarpLanes {
   // or compares the same two values in either order).
   template <typename T>
   TV_HD T sum(T value) const {
-#if defined(__CUDA_ARCH__)
-    TV_UNROLL
-    for (int offset = 16; offset > 0; offset /= 2) value += __shfl_xor_sync(kAll, value, offset);
-#endif
-    return value;
+    return butterfly(value, [](T mine, T other) { return mine + other; });
   }
   template <typename T>
   TV_HD T max(T value) const {
-#if defined(__CUDA_ARCH__)
-    TV_UNROLL
-    for (int offset = 16; offset > 0; offset /= 2) value = max_of(value, __shfl_xor_sync(kAll, value, offset));
-#endif
-    return value;
+    return butterfly(value, [](T mine, T other) { return max_of(mine, other); });
   }
   template <typename T>
   TV_HD T min(T value) const {
-#if defined(__CUDA_ARCH__)
-    TV_UNROLL
-    for (int offset = 16; offset > 0; offset /= 2) value = min_of(value, __shfl_xor_sync(kAll, value, offset));
-#endif
-    return value;
+    return butterfly(value, [](T mine, T other) { return min_of(mine, other); });
   }
   // Lane `lane`'s value, in every lane.
   template <typename T>
@@ -116,6 +104,20 @@ struct WarpLanes {
     (void)lane;
     return value;
 #endif
+  }
+
+ private:
+  // value = combine(value, the value of the lane `offset` away), for offsets
+  // 16, 8, 4, 2, 1.
+  template <typename T, typename Combine>
+  TV_HD T butterfly(T value, Combine combine) const {
+#if defined(__CUDA_ARCH__)
+    TV_UNROLL
+    for (int offset = 16; offset > 0; offset /= 2) value = combine(value, __shfl_xor_sync(kAll, value, offset));
+#else
+    (void)combine;
+#endif
+    return value;
   }
 };
 #endif

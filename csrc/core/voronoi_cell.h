@@ -72,7 +72,7 @@ struct NeighborReader {
 // and computed in T (T may be wider, for the float64 recovery pass).
 // `Cell` is a ConvexCell (one thread) or a CooperativeCell (a group of lanes,
 // each of which runs this function with the same arguments).
-// With `vertex_balls` (a Cell with kVertexBalls), a cell whose list runs out
+// With `vertex_balls`, a cell whose list runs out
 // before the radius of security is finished by the empty-ball test of its
 // vertices on that grid (finish_by_vertex_balls) instead of failing; its
 // `neighbors` then counts the list and the further neighbours that bound it.
@@ -180,13 +180,11 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
   };
   start_and_clip_list();
 
-  if constexpr (Cell::kVertexBalls) {
-    if (vertex_balls != nullptr && out.status == kSecurityRadiusNotReached) {
-      int32_t further = 0;
-      out.status = finish_by_vertex_balls(cell, *vertex_balls, seed_index, seed, listed_dist2,
-                                          start_and_clip_list, further);
-      out.neighbors = k + further;
-    }
+  if (vertex_balls != nullptr && out.status == kSecurityRadiusNotReached) {
+    int32_t further = 0;
+    out.status = finish_by_vertex_balls(cell, *vertex_balls, seed_index, seed, listed_dist2,
+                                        start_and_clip_list, further);
+    out.neighbors = k + further;
   }
   // One exit from the loop above (no early return inside it): on the GPU the
   // lanes of a warp meet again here and integrate together, instead of each
