@@ -16,7 +16,8 @@ voronoi on a perturbed grid (k=48) and on white noise (k=64), the
 benchmark's first-pass k (bench_voronoi.py), or with --pilot the op's default
 k (k=None: its pilot picks it). The point sets are the
 benchmarks' (common.make_points, seed 0; blue noise cached in
-benchmarks/.cache, shared with bench_voronoi.py).
+benchmarks/.cache, shared with bench_voronoi.py). --knn K1,K2 adds the kNN op
+at those k on each kind; kind "clusters" (200 clusters of 0.02) times only that.
 """
 import argparse
 import os
@@ -40,6 +41,8 @@ DEVICE = "cuda"
 
 
 def points_of(kind: str, n: int) -> torch.Tensor:
+    if kind == "clusters":
+        return torchvor.samples.clustered(n, clusters=200, spread=0.02, seed=0).to(DEVICE)
     points, _ = common.make_points(kind, n, seed=0, dtype=torch.float32, device=torch.device(DEVICE),
                                    cache_dir=Path(__file__).resolve().parent / ".cache")
     return points
@@ -82,9 +85,13 @@ def kernel_ms(fn) -> dict:
     return out
 
 
-def calls_for(kind: str, tag: str, pilot: bool = False) -> dict:
-    points, k = points_of(kind, SIZES[tag]), (None if pilot else FIRST_PASS_K[kind])
-    calls = {f"voronoi {tag} {kind} k={k or 'pilot'}": lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")}
+def calls_for(kind: str, tag: str, pilot: bool = False, knn_k: list = ()) -> dict:
+    points = points_of(kind, SIZES[tag])
+    calls = {f"knn {tag} {kind} k={k}": (lambda k=k: torchvor.knn(points, k)) for k in knn_k}
+    if kind == "clusters":  # the kNN op only
+        return calls
+    k = None if pilot else FIRST_PASS_K[kind]
+    calls[f"voronoi {tag} {kind} k={k or 'pilot'}"] = lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")
     if kind == "blue":
         box = as_box(points, BOX)
         # Lloyd's late iterations start from points already in grid order.
@@ -124,13 +131,16 @@ def main() -> None:
     parser.add_argument("--kinds", default="blue", help="blue, perturbed, white (comma-separated)")
     parser.add_argument("--kernels", action="store_true")
     parser.add_argument("--pilot", action="store_true", help="voronoi with the op's default k (its pilot) instead")
+    parser.add_argument("--knn", type=common.parse_ints, default=[],
+                        help="also time the kNN op at these k (comma-separated); kind 'clusters' (200 of "
+                             "0.02) times only that")
     parser.add_argument("--device", default="cuda", help="cpu: a dry run of this script (timed by the host clock)")
     args = parser.parse_args()
     global DEVICE
     DEVICE = args.device
     for tag in args.sizes.split(","):
         for kind in args.kinds.split(","):
-            time_calls(calls_for(kind, tag, args.pilot), args.settings, args.rounds, args.kernels)
+            time_calls(calls_for(kind, tag, args.pilot, args.knn), args.settings, args.rounds, args.kernels)
     apply("default")
 
 

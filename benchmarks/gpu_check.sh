@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|sweep|profile|sanitize|ncu|ncusource]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|sweep|profile|sanitize|ncu|ncusource|envab|ncuknn]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -86,6 +86,28 @@ torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=$k, on_failure='flag'); torch.cuda.sync
         python3 benchmarks/ncu_source.py "$OUT/clip_$name.ncu-rep" --csv-dir "$OUT" 2>&1 | tee "$OUT/ncu_source_$name.log" | head -70
         ncu --import "$OUT/clip_$name.ncu-rep" --page details 2>&1 | grep -E "Duration|Registers|Achieved Occupancy|Theoretical Occupancy|Issued Warp|Eligible|L1/TEX Hit|L2 Hit|Executed Ipc A|Avg. Active Threads|Local" | tee -a "$OUT/ncu_source_$name.log"
         rm -f "$OUT/clip_$name.ncu-rep"  # the CSVs and summaries above hold what is needed
+      done ;;
+    envab)  # ab_env.py: ENVAB_SETTINGS (default: the default against the rings) with ENVAB_ARGS
+      python3 benchmarks/ab_env.py ${ENVAB_SETTINGS:-default TORCHVOR_KNN=thread} ${ENVAB_ARGS:-} 2>&1 \
+        | grep --line-buffered -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/envab.log" ;;
+    ncuknn)  # the kNN kernel of voronoi on 1M blue noise (k=24) under ncu, per TORCHVOR_KNN setting (NCUKNN_SETTINGS)
+      python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
+import sys, torch
+sys.path.insert(0, "benchmarks")
+import common
+blue, _ = common.make_points("blue", 1_000_000, seed=0, dtype=torch.float32, device=torch.device("cuda"),
+                             cache_dir=common.Path("benchmarks/.cache"))
+torch.save(blue.cpu(), "/tmp/blue_1m.pt")
+PY
+      for setting in ${NCUKNN_SETTINGS:-thread}; do
+        echo "TORCHVOR_KNN=$setting" | tee -a "$OUT/ncuknn.log"
+        TORCHVOR_KNN=$setting ncu --clock-control none --kernel-name-base demangled -k regex:KnnFunctor --launch-count 1 \
+          --section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats --section SchedulerStats \
+          --section InstructionStats --section MemoryWorkloadAnalysis python3 -c "
+import torch, torchvor
+p = torch.load('/tmp/blue_1m.pt').cuda()
+torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=24, on_failure='flag'); torch.cuda.synchronize()
+" 2>&1 | grep -v '^==PROF==' | grep -E "Duration|Registers|Achieved Occupancy|Theoretical Occupancy|Block Limit|Issued Warp|Eligible|Executed Ipc A|Avg. Active Threads|Executed Instructions|L1/TEX Hit|L2 Hit|Dynamic Shared|Stall" | tee -a "$OUT/ncuknn.log"
       done ;;
     sweep) python3 benchmarks/sweep_lloyd_k.py --device cuda --sizes 1M --repeats 20 --timeline 2>&1 | grep -v USDT | tee "$OUT/sweep.log" ;;
     profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
