@@ -56,6 +56,7 @@ struct CooperativeCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static_assert(MAX_TRIANGLES <= 65535, "slots are stored as uint16");
   static constexpr uint8_t kNone = 255;
+  static constexpr int kBoxPlanes = 6;  // planes 0-5: the box's faces; the bisectors follow
   static constexpr int kLanes = Lanes::kCount;
   static constexpr int kRounds = (MAX_TRIANGLES + kLanes - 1) / kLanes;     // slots per lane
   static constexpr int kPlaneRounds = (MAX_PLANES + kLanes - 1) / kLanes;  // planes per lane
@@ -80,7 +81,7 @@ struct CooperativeCell {
 
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
     const int lane = lanes.index();
-    for (int q = lane; q < 6; q += kLanes) a.plane[q] = box_plane(q, lo, hi);
+    for (int q = lane; q < kBoxPlanes; q += kLanes) a.plane[q] = box_plane(q, lo, hi);
     // Links of the previous cell in these arrays carry stamps this cell
     // will reuse: clear them.
     for (int q = lane; q < MAX_PLANES; q += kLanes) {
@@ -91,7 +92,7 @@ struct CooperativeCell {
     T largest = T(0);
     for (int t = lane; t < 8; t += kLanes) largest = max_of(largest, set_triangle(t, box_triangle(t)).radius2);
     radius2 = lanes.max(largest);
-    num_planes = 6;
+    num_planes = kBoxPlanes;
     num_triangles = 8;
     tolerance = relative_tolerance;
     max_band_widenings = band_widenings;
@@ -110,13 +111,13 @@ struct CooperativeCell {
   // minus the neighbour, exactly (bisector_plane).
   TV_HD int vertex_count() const { return num_triangles; }
   TV_HD Vec3<T> vertex(int t) const { return a.vertex[t].position; }
-  static constexpr int kMaxBisectors = MAX_PLANES - 6;
+  static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;
   TV_HD Vec3<T> bisector_neighbor(int q) const {
     const Vec3<T> normal = a.plane[q].normal;
     return {-normal.x, -normal.y, -normal.z};
   }
   TV_HD bool has_bisector(Vec3<T> r) const {
-    for (int q = 6; q < num_planes; ++q) {
+    for (int q = kBoxPlanes; q < num_planes; ++q) {
       const Vec3<T> other = bisector_neighbor(q);
       if (other.x == r.x && other.y == r.y && other.z == r.z) return true;
     }
@@ -131,7 +132,7 @@ struct CooperativeCell {
       for (int e = 0; e < 3; ++e) used.set(corner(corners, e));
     }
     int count = 0;
-    for (int q = 6; q < num_planes; ++q) {
+    for (int q = kBoxPlanes; q < num_planes; ++q) {
       if (!used.test(q)) continue;
       insert_by_distance(bisector_neighbor(q), nearest2, r, r2, count);
     }
