@@ -90,7 +90,8 @@ torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=$k, on_failure='flag'); torch.cuda.sync
     envab)  # ab_env.py: ENVAB_SETTINGS (default: the default against the rings) with ENVAB_ARGS
       python3 benchmarks/ab_env.py ${ENVAB_SETTINGS:-default TORCHVOR_KNN=thread} ${ENVAB_ARGS:-} 2>&1 \
         | grep --line-buffered -v -e USDT -e profiler -e _warn_once | tee -a "$OUT/envab.log" ;;
-    ncuknn)  # the kNN kernel of voronoi on 1M blue noise (k=24) under ncu, per TORCHVOR_KNN setting (NCUKNN_SETTINGS)
+    ncuknn)  # the kNN kernel of voronoi on 1M blue noise (k=24) under ncu, per environment setting of
+             # NCUKNN_SETTINGS ("default" = none, else NAME=VALUE[,NAME=VALUE], e.g. TORCHVOR_KNN=thread)
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
 import sys, torch
 sys.path.insert(0, "benchmarks")
@@ -99,9 +100,9 @@ blue, _ = common.make_points("blue", 1_000_000, seed=0, dtype=torch.float32, dev
                              cache_dir=common.Path("benchmarks/.cache"))
 torch.save(blue.cpu(), "/tmp/blue_1m.pt")
 PY
-      for setting in ${NCUKNN_SETTINGS:-thread}; do
-        echo "TORCHVOR_KNN=$setting" | tee -a "$OUT/ncuknn.log"
-        TORCHVOR_KNN=$setting ncu --clock-control none --kernel-name-base demangled -k regex:KnnFunctor --launch-count 1 \
+      for setting in ${NCUKNN_SETTINGS:-default}; do
+        echo "$setting" | tee -a "$OUT/ncuknn.log"
+        env $( [ "$setting" = default ] || echo "${setting//,/ }" ) ncu --clock-control none --kernel-name-base demangled -k regex:KnnFunctor --launch-count 1 \
           --section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats --section SchedulerStats \
           --section InstructionStats --section MemoryWorkloadAnalysis python3 -c "
 import torch, torchvor
