@@ -507,11 +507,10 @@ def test_float64_cell_at_nearly_concurrent_bisectors(device):
     nearly meet (the sine of their angle down to 1.3e-10). Exact rational
     arithmetic (tests/oracles.py, exact_cell_oracle) agrees with the Qhull
     oracle to 2e-16; torchvor's float64 cell was 8e-11 off in volume and
-    1.6e-10 in second moment (the rtol of the other float64 tests is 1e-10):
-    its vertices there are computed from planes nearly parallel in pairs, and
-    no flag catches that (ILL_CONDITIONED measures the integrals'
-    cancellation, which is low here). Held to 1e-9 here: a known limit, not a
-    goal. The oracles are held to each other at 1e-13."""
+    1.6e-10 in second moment, unflagged: Cramer's rule on three nearly
+    parallel bisectors loses the determinant to cancellation. With such
+    planes solved relative to the first (core::intersect_planes) it is within
+    1e-15. The oracles are held to each other at 1e-13."""
     gen = torch.Generator()
     gen.manual_seed(3321684543)
     points = tight_clusters(gen, 1e-5)
@@ -523,9 +522,34 @@ def test_float64_cell_at_nearly_concurrent_bisectors(device):
     assert exact.second_moment == pytest.approx(qhull.second_moment, rel=1e-13, abs=0)
     cells = run(points.to(device), UNIT)
     assert cells.status[211].item() == CellStatus.SUCCESS
-    assert cells.volume[211].item() == pytest.approx(exact.volume, rel=1e-9, abs=0)
-    assert cells.second_moment[211].item() == pytest.approx(exact.second_moment, rel=1e-9, abs=0)
-    np.testing.assert_allclose(cells.centroid[211].cpu().numpy(), exact.centroid, rtol=0, atol=1e-9)
+    assert cells.volume[211].item() == pytest.approx(exact.volume, rel=1e-12, abs=0)
+    assert cells.second_moment[211].item() == pytest.approx(exact.second_moment, rel=1e-12, abs=0)
+    np.testing.assert_allclose(cells.centroid[211].cpu().numpy(), exact.centroid, rtol=0, atol=1e-12)
+
+
+def test_float64_cell_at_nearly_parallel_far_bisectors(device, cells_impl, vertex_balls):
+    """Found by test_tight_clusters (seed 3627362118, spread 1e-6, every retry
+    finished on the grid): cell 117 (volume 0.0059) has five faces on the
+    bisectors of a cluster 0.38 away whose points lie within ~1e-6 of each
+    other, their normals ~3e-6 apart. Cramer's rule on three of them (the
+    determinant ~1e-11 |n|^3, its rounding error 5e-7 of it) put a vertex
+    3e-7 off, across a fourth plane: the faces there joined wrongly, the
+    volume came out 2.9e-11 low (the volumes summed to 1 - 2.9e-11) and no
+    flag caught it. By default the pass-wide escalation to double-double
+    (another cell's BOUNDARY_ERROR) reached this cell first and hid it.
+    Reference values: exact rational arithmetic (exact_cell_oracle; Qhull
+    agrees to 2e-18)."""
+    gen = torch.Generator()
+    gen.manual_seed(3627362118)
+    points = tight_clusters(gen, 1e-6)
+    assert points[117].tolist() == [0.1535408973827895, 0.43792968493351175, 0.7812599555814832]
+    cells = run(points.to(device), UNIT)
+    assert cells.status[117].item() == CellStatus.SUCCESS
+    assert cells.volume[117].item() == pytest.approx(0.005919962692627301, rel=1e-12, abs=0)
+    assert cells.second_moment[117].item() == pytest.approx(0.00030368775329608363, rel=1e-12, abs=0)
+    np.testing.assert_allclose(cells.centroid[117].cpu().numpy(),
+                               [0.09119880337270697, 0.25030488899203174, 0.7544930536055348], rtol=0, atol=1e-12)
+    check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
 
 
 def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):

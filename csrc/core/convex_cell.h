@@ -72,13 +72,45 @@ TV_HD uint32_t box_triangle(int t) {
 
 // Intersection point of three planes (Cramer's rule).
 template <typename T>
-TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
+TV_HD Vec3<T> cramer_point(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
   const Vec3<T> bc = cross(pb.normal, pc.normal);
   const Vec3<T> ca = cross(pc.normal, pa.normal);
   const Vec3<T> ab = cross(pa.normal, pb.normal);
   const T det = dot(pa.normal, bc);
   const T scale = T(-1) / det;
   return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
+}
+
+// Whether intersect_planes solves nearly parallel planes relative to the
+// first: in double. The float kernels (the speed targets, whose tolerances
+// allow for such vertices) keep the plain rule, as does double-double, whose
+// precision resolves them.
+template <typename T> struct RelativeToFirstPlane { static constexpr bool value = false; };
+template <> struct RelativeToFirstPlane<double> { static constexpr bool value = true; };
+
+// Intersection point of three planes. Three nearly parallel planes
+// (bisectors of a tight cluster seen from afar) have a determinant of their
+// normals of about |n|^3 angle^2, and its rounding, a few eps |n|^3, scales
+// the vertex by up to eps / angle^2: off its own planes and across others
+// that nearly meet there, so that the cell's faces join wrongly (float64
+// cells of test_tight_clusters 1e-11 to 4e-10 off in volume at spread 1e-6,
+// angles ~3e-6; benchmarks/NOTES.md). Where b and c are within |n_a| / 2 of
+// a, they are taken relative to a (normals and offsets minus a's: the same
+// point, the same determinant), whose differences from nearly equal normals
+// are exact. Not otherwise: a normal much shorter than a's (a nearer
+// neighbour's) would lose its digits in the difference.
+template <typename T>
+TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
+  if constexpr (RelativeToFirstPlane<T>::value) {
+    const Vec3<T> eb = pb.normal - pa.normal, ec = pc.normal - pa.normal;
+    const T near2 = T(0.25) * squared_norm(pa.normal);
+    const bool relative = squared_norm(eb) < near2 && squared_norm(ec) < near2;
+    const Plane<T> qb = relative ? Plane<T>{eb, pb.offset - pa.offset} : pb;
+    const Plane<T> qc = relative ? Plane<T>{ec, pc.offset - pa.offset} : pc;
+    return cramer_point(pa, qb, qc);
+  } else {
+    return cramer_point(pa, pb, pc);
+  }
 }
 
 // The bisector of the seed (origin) and a neighbour at r (|r|^2 = r2), the
