@@ -479,6 +479,27 @@ def test_isolated_point_and_tight_cluster_regression(device, cells_impl):
     check_against_oracle(cells, points, lohi, range(6), 1e-10)
 
 
+def seeded_tight_clusters(seed, spread, cell, point):
+    """test_tight_clusters' float64 input for `seed` (a regression case),
+    after checking that point `cell` is still `point` (the generator and
+    tight_clusters unchanged)."""
+    gen = torch.Generator()
+    gen.manual_seed(seed)
+    points = tight_clusters(gen, spread)
+    assert points[cell].tolist() == point
+    return points
+
+
+def assert_pinned_cell(cells, cell, volume, second_moment, centroid=None):
+    """Cell `cell` succeeded with these integrals: relative 1e-12, the
+    centroid (where given) absolute 1e-12."""
+    assert cells.status[cell].item() == CellStatus.SUCCESS
+    assert cells.volume[cell].item() == pytest.approx(volume, rel=1e-12, abs=0)
+    assert cells.second_moment[cell].item() == pytest.approx(second_moment, rel=1e-12, abs=0)
+    if centroid is not None:
+        np.testing.assert_allclose(cells.centroid[cell].cpu().numpy(), centroid, rtol=0, atol=1e-12)
+
+
 def test_needle_cell_exact_float64(device, cells_impl):
     """Regression found by test_tight_clusters (seed 1047518939): cell 59 is a
     needle (~1e-5 wide, ~0.1 long, volume 1.5e-11) of a cluster point. The
@@ -489,14 +510,10 @@ def test_needle_cell_exact_float64(device, cells_impl):
     the cell's half-spaces; Qhull's volume is 1.7e-11 off. (Only with all 320
     points: the cell alone with its 15 facet neighbours comes out right even
     without the recomputation.)"""
-    gen = torch.Generator()
-    gen.manual_seed(1047518939)
-    points = tight_clusters(gen, 1e-5)
-    assert points[59].tolist() == [0.35760402697859545, 0.8997942077279265, 0.6421634167118496]
+    points = seeded_tight_clusters(1047518939, 1e-5, 59,
+                                   [0.35760402697859545, 0.8997942077279265, 0.6421634167118496])
     cells = run(points.to(device), UNIT)
-    assert cells.status[59].item() == CellStatus.SUCCESS
-    assert cells.volume[59].item() == pytest.approx(1.4992333652678265e-11, rel=1e-12, abs=0)
-    assert cells.second_moment[59].item() == pytest.approx(1.8417640051644332e-14, rel=1e-12, abs=0)
+    assert_pinned_cell(cells, 59, 1.4992333652678265e-11, 1.8417640051644332e-14)
     check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
 
 
@@ -511,20 +528,15 @@ def test_float64_cell_at_nearly_concurrent_bisectors(device):
     parallel bisectors loses the determinant to cancellation. With such
     planes solved relative to the first (core::intersect_planes) it is within
     1e-15. The oracles are held to each other at 1e-13."""
-    gen = torch.Generator()
-    gen.manual_seed(3321684543)
-    points = tight_clusters(gen, 1e-5)
-    assert points[211].tolist() == [0.3885020495206787, 0.8110196492366557, 0.639860898022586]
+    points = seeded_tight_clusters(3321684543, 1e-5, 211,
+                                   [0.3885020495206787, 0.8110196492366557, 0.639860898022586])
     lohi = box_of(points, UNIT)
     exact = exact_cell_oracle(points.numpy(), 211, lohi)
     qhull = voronoi_cell_oracle(points.numpy(), 211, lohi)
     assert exact.volume == pytest.approx(qhull.volume, rel=1e-13, abs=0)
     assert exact.second_moment == pytest.approx(qhull.second_moment, rel=1e-13, abs=0)
     cells = run(points.to(device), UNIT)
-    assert cells.status[211].item() == CellStatus.SUCCESS
-    assert cells.volume[211].item() == pytest.approx(exact.volume, rel=1e-12, abs=0)
-    assert cells.second_moment[211].item() == pytest.approx(exact.second_moment, rel=1e-12, abs=0)
-    np.testing.assert_allclose(cells.centroid[211].cpu().numpy(), exact.centroid, rtol=0, atol=1e-12)
+    assert_pinned_cell(cells, 211, exact.volume, exact.second_moment, exact.centroid)
 
 
 def test_float64_cell_at_nearly_parallel_far_bisectors(device, cells_impl, vertex_balls):
@@ -539,16 +551,11 @@ def test_float64_cell_at_nearly_parallel_far_bisectors(device, cells_impl, verte
     (another cell's BOUNDARY_ERROR) reached this cell first and hid it.
     Reference values: exact rational arithmetic (exact_cell_oracle; Qhull
     agrees to 2e-18)."""
-    gen = torch.Generator()
-    gen.manual_seed(3627362118)
-    points = tight_clusters(gen, 1e-6)
-    assert points[117].tolist() == [0.1535408973827895, 0.43792968493351175, 0.7812599555814832]
+    points = seeded_tight_clusters(3627362118, 1e-6, 117,
+                                   [0.1535408973827895, 0.43792968493351175, 0.7812599555814832])
     cells = run(points.to(device), UNIT)
-    assert cells.status[117].item() == CellStatus.SUCCESS
-    assert cells.volume[117].item() == pytest.approx(0.005919962692627301, rel=1e-12, abs=0)
-    assert cells.second_moment[117].item() == pytest.approx(0.00030368775329608363, rel=1e-12, abs=0)
-    np.testing.assert_allclose(cells.centroid[117].cpu().numpy(),
-                               [0.09119880337270697, 0.25030488899203174, 0.7544930536055348], rtol=0, atol=1e-12)
+    assert_pinned_cell(cells, 117, 0.005919962692627301, 0.00030368775329608363,
+                       [0.09119880337270697, 0.25030488899203174, 0.7544930536055348])
     check_global(cells, points.to(device), [box_of(points, UNIT)], torch.float64)
 
 
