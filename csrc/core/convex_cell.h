@@ -7,6 +7,8 @@
 // are oriented consistently, which the integrals (§3.5) rely on.
 #pragma once
 
+#include <type_traits>
+
 #include "common.h"
 #include "double_double.h"
 #include "lanes.h"
@@ -81,13 +83,6 @@ TV_HD Vec3<T> cramer_point(const Plane<T>& pa, const Plane<T>& pb, const Plane<T
   return scale * (pa.offset * bc + pb.offset * ca + pc.offset * ab);
 }
 
-// Whether intersect_planes solves nearly parallel planes relative to the
-// first: in double. The float kernels (the speed targets, whose tolerances
-// allow for such vertices) keep the plain rule, as does double-double, whose
-// precision resolves them.
-template <typename T> struct RelativeToFirstPlane { static constexpr bool value = false; };
-template <> struct RelativeToFirstPlane<double> { static constexpr bool value = true; };
-
 // Intersection point of three planes. Three nearly parallel planes
 // (bisectors of a tight cluster seen from afar) have a determinant of their
 // normals of about |n|^3 angle^2, and its rounding, a few eps |n|^3, scales
@@ -98,10 +93,13 @@ template <> struct RelativeToFirstPlane<double> { static constexpr bool value = 
 // a, they are taken relative to a (normals and offsets minus a's: the same
 // point, the same determinant), whose differences from nearly equal normals
 // are exact. Not otherwise: a normal much shorter than a's (a nearer
-// neighbour's) would lose its digits in the difference.
+// neighbour's) would lose its digits in the difference. In double only: the
+// float kernels (the speed targets, whose tolerances allow for such
+// vertices) keep the plain rule, as does double-double, whose precision
+// resolves them.
 template <typename T>
 TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Plane<T>& pc) {
-  if constexpr (RelativeToFirstPlane<T>::value) {
+  if constexpr (std::is_same<T, double>::value) {
     const Vec3<T> eb = pb.normal - pa.normal, ec = pc.normal - pa.normal;
     const T near2 = T(0.25) * squared_norm(pa.normal);
     const bool relative = squared_norm(eb) < near2 && squared_norm(ec) < near2;
