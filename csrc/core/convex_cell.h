@@ -46,7 +46,11 @@ struct alignas(16) DualTriangle {
   uint32_t corners;  // plane ids (a, b, c) packed as a | b << 8 | c << 16
 };
 
-// The box [lo, hi] (relative to the seed): plane q of 6, and the corners
+// Planes 0-5 of every cell are the box's faces (box_plane); the bisectors
+// follow.
+constexpr int kBoxPlanes = 6;
+
+// The box [lo, hi] (relative to the seed): plane q of kBoxPlanes, and the corners
 // (plane ids packed as a | b << 8 | c << 16) of its dual triangle t of 8.
 // (No local arrays: indexed by a lane number they would go to local memory.)
 template <typename T>
@@ -463,7 +467,6 @@ struct ConvexCell {
   // as that point: 12 bytes a plane, not 16 (as DualTriangle, for the
   // cache), and rebuilt as the clip built it (bisector_plane, squared_norm:
   // bit for bit). Compaction keeps the faces' ids.
-  static constexpr int kBoxPlanes = 6;
   Plane<T> box_face[kBoxPlanes];
   Vec3<T> neighbor[MAX_PLANES - kBoxPlanes];
   DualTriangle<T> triangle[MAX_TRIANGLES];

@@ -56,7 +56,6 @@ struct CooperativeCell {
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
   static_assert(MAX_TRIANGLES <= 65535, "slots are stored as uint16");
   static constexpr uint8_t kNone = 255;
-  static constexpr int kBoxPlanes = 6;  // planes 0-5: the box's faces; the bisectors follow
   static constexpr int kLanes = Lanes::kCount;
   static constexpr int kRounds = (MAX_TRIANGLES + kLanes - 1) / kLanes;     // slots per lane
   static constexpr int kPlaneRounds = (MAX_PLANES + kLanes - 1) / kLanes;  // planes per lane

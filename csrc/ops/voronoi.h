@@ -472,10 +472,12 @@ inline double pilot_quantile() {
 // The most neighbours a retry asks for; a cell that needs more is finished
 // on the grid, by the empty balls of its vertices, from a list of this many
 // (core::finish_by_vertex_balls): a cell that reaches into empty space would
-// ask for up to the whole cloud. 256, not 128 (H100, 1M points, a warp
-// sweeping each cell, 256 / 128: 200 clusters of 0.05 38.7 / 67.8 ms, 20
-// clusters of 0.02 117.5 / 107.4, white noise in a box 3x wide 81.3 / 68.3,
-// white noise 22.6 / 22.4; 64 was slower on all four; benchmarks/NOTES.md).
+// ask for up to the whole cloud. 256, not 128: 128 is 9-16% faster on two
+// inputs but 75% slower on a third, the same on white noise (H100, 1M points,
+// a warp sweeping each cell, 256 / 128: 200 clusters of 0.05 38.7 / 67.8 ms,
+// 20 clusters of 0.02 117.5 / 107.4, white noise in a box 3x wide 81.3 /
+// 68.3, white noise 22.6 / 22.4; 64 was slower on all four;
+// benchmarks/NOTES.md).
 // TORCHVOR_VERTEX_BALLS_K (an integer >= 1) overrides it (tests, benchmarks).
 inline int64_t vertex_balls_k() {
   constexpr int64_t kDefault = 256;
