@@ -766,6 +766,35 @@ def test_duplicate_neighbours_regression(device, dtype_):
     check_against_oracle(cells, points, lohi, range(5), RTOL[dtype_])
 
 
+def test_unwritten_cell_reads_not_computed(device, dtype, monkeypatch):
+    """Only the statuses are poisoned before the passes; a cell that no pass
+    writes (simulated: the first pass's result for one grid position is
+    dropped and its record zeroed) must come out NOT_COMPUTED with NaN
+    outputs and 0 neighbours, not as the zeroed record. On a jittered lattice
+    every cell succeeds in the first pass, so no retry recomputes it."""
+    gen = torch.Generator().manual_seed(0)
+    axis = (torch.arange(4, dtype=torch.float64) + 0.5) / 4
+    lattice = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    points = (lattice + 0.05 * (torch.rand(lattice.shape, generator=gen, dtype=torch.float64) - 0.5) / 4)
+    points = points.to(dtype).to(device)
+    monkeypatch.setenv("TORCHVOR_TEST_UNWRITTEN_CELL", "5")
+    cells = torchvor.voronoi(points, UNIT, k=26, on_failure="flag")
+    not_computed = cells.status == int(torchvor.CellStatus.NOT_COMPUTED)
+    assert int(not_computed.sum()) == 1
+    assert (cells.status[~not_computed] == int(torchvor.CellStatus.SUCCESS)).all()
+    row = int(not_computed.nonzero()[0, 0])
+    assert torch.isnan(cells.volume[row]) and torch.isnan(cells.centroid[row]).all()
+    assert torch.isnan(cells.second_moment[row]) and int(cells.neighbors[row]) == 0
+    assert torch.isfinite(cells.volume[~not_computed]).all()
+    # the other cells are those of a run without the hook
+    monkeypatch.delenv("TORCHVOR_TEST_UNWRITTEN_CELL")
+    reference = torchvor.voronoi(points, UNIT, k=26, on_failure="flag")
+    torch.testing.assert_close(cells.volume[~not_computed], reference.volume[~not_computed], rtol=0, atol=0)
+    monkeypatch.setenv("TORCHVOR_TEST_UNWRITTEN_CELL", "5")
+    with pytest.raises(RuntimeError, match=r"1 cell\(s\) could not be computed \(NOT_COMPUTED\)"):
+        torchvor.voronoi(points, UNIT, k=26, on_failure="raise")
+
+
 def test_all_points_identical(device, dtype, cells_impl):
     points = torch.full((5, 3), 0.25, dtype=dtype, device=device)
     cells = run(points, UNIT)
