@@ -10,6 +10,9 @@ of one profiled call.
 
     python benchmarks/ab_env.py "default" "TORCHVOR_CELL_START=box" [--rounds 15] [--sizes 1M,10M] [--kernels]
 
+The setting TORCHVOR_AB_MEMORY_BUDGET=BYTES is this script's own: it passes
+voronoi that memory_budget (the op reads no such variable).
+
 Calls (--kinds): voronoi on blue noise (k=24) and one Lloyd iteration on it
 (k=19, from points already in Lloyd's grid order, as in late iterations);
 voronoi on a perturbed grid (k=48) and on white noise (k=64), the
@@ -57,6 +60,14 @@ def apply(setting: str) -> None:
             os.environ[name] = value
 
 
+def memory_budget() -> dict:
+    """voronoi's memory_budget argument: TORCHVOR_AB_MEMORY_BUDGET (bytes) as
+    a setting of this script (the op reads no such variable), else none (the
+    op's default)."""
+    chosen = os.environ.get("TORCHVOR_AB_MEMORY_BUDGET")
+    return {"memory_budget": int(chosen)} if chosen else {}
+
+
 def wall_ms(fn) -> float:
     if DEVICE == "cpu":
         begin = time.perf_counter()
@@ -91,7 +102,8 @@ def calls_for(kind: str, tag: str, pilot: bool = False, knn_k: list = ()) -> dic
     if kind == "clusters":  # the kNN op only
         return calls
     k = None if pilot else FIRST_PASS_K[kind]
-    calls[f"voronoi {tag} {kind} k={k or 'pilot'}"] = lambda: torchvor.voronoi(points, BOX, k=k, on_failure="flag")
+    calls[f"voronoi {tag} {kind} k={k or 'pilot'}"] = lambda: torchvor.voronoi(
+        points, BOX, k=k, on_failure="flag", **memory_budget())
     if kind == "blue":
         box = as_box(points, BOX)
         # Lloyd's late iterations start from points already in grid order.

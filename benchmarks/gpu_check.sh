@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|sweep|profile|sanitize|ncu|ncusource|envab|ncuknn]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|sweep|timeline|profile|sanitize|ncu|ncusource|envab|ncuknn]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -111,6 +111,10 @@ torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=24, on_failure='flag'); torch.cuda.sync
 " 2>&1 | grep -v '^==PROF==' | grep -E "Duration|Registers|Achieved Occupancy|Theoretical Occupancy|Block Limit|Issued Warp|Eligible|Executed Ipc A|Avg. Active Threads|Executed Instructions|L1/TEX Hit|L2 Hit|Dynamic Shared|Stall" | tee -a "$OUT/ncuknn.log"
       done ;;
     sweep) python3 benchmarks/sweep_lloyd_k.py --device cuda --sizes 1M --repeats 20 --timeline 2>&1 | grep -v USDT | tee "$OUT/sweep.log" ;;
+    timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,
+               # the op's default k; TIMELINE_SIZES)
+      python3 benchmarks/profile_gpu.py --device cuda --sizes ${TIMELINE_SIZES:-1M,10M} --timeline --rows 8 2>&1 \
+        | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/timeline.log" ;;
     profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
     ncu)
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'

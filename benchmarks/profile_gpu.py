@@ -4,11 +4,13 @@ Runs each call once under torch.profiler after a warm-up and prints the CUDA
 kernels sorted by their total time, plus the wall time of the call (CUDA
 events). Reports only; nothing asserts.
 
-    python benchmarks/profile_gpu.py --device cuda [--sizes 1M] [--knn-10m] [--rows 12] [--timeline]
+    python benchmarks/profile_gpu.py --device cuda [--sizes 1M] [--knn-10m] [--rows 12] [--timeline [--timeline-k K]]
 
---timeline also prints, for voronoi on 1M blue noise, the GPU's activities in
-order with the idle time before each and the host calls made meanwhile: where
-the wall time that no kernel accounts for goes.
+--timeline also prints, for voronoi on blue noise of each size, the GPU's
+activities in order with the idle time before each and the host calls made
+meanwhile: where the wall time that no kernel accounts for goes. Its voronoi
+call takes the op's default k (its pilot) unless --timeline-k gives one; the
+Lloyd iteration takes k=19.
 """
 from __future__ import annotations
 
@@ -80,7 +82,8 @@ def main() -> None:
     parser = common.base_parser(__doc__)
     parser.add_argument("--rows", type=int, default=12)
     parser.add_argument("--knn-10m", action="store_true", help="also kNN of 10M uniform points, k=190")
-    parser.add_argument("--timeline", action="store_true", help="GPU idle gaps of voronoi and of one Lloyd step (blue, k=24)")
+    parser.add_argument("--timeline", action="store_true", help="GPU idle gaps of voronoi and of one Lloyd step (blue)")
+    parser.add_argument("--timeline-k", type=int, default=None, help="the timeline's voronoi k (default: the pilot's)")
     args = parser.parse_args()
     device, dtype = common.setup(args)
     box = common.UNIT_BOX
@@ -91,8 +94,9 @@ def main() -> None:
                                      cache_dir=args.cache_dir, blue_iters=args.blue_iters)
         report(f"voronoi {n} blue k=24", lambda: torchvor.voronoi(blue, box, k=24, on_failure="flag"), device, args.rows)
         if args.timeline and device.type == "cuda":
-            timeline(f"voronoi {n} blue k=24", lambda: torchvor.voronoi(blue, box, k=24, on_failure="flag"))
-            timeline(f"one Lloyd iteration, {n} blue", lambda: torchvor.lloyd(blue, box, iters=1, k=24))
+            k = args.timeline_k
+            timeline(f"voronoi {n} blue k={k or 'pilot'}", lambda: torchvor.voronoi(blue, box, k=k, on_failure="flag"))
+            timeline(f"one Lloyd iteration, {n} blue k=19", lambda: torchvor.lloyd(blue, box, iters=1, k=19))
         report(f"voronoi {n} blue k=None", lambda: torchvor.voronoi(blue, box, on_failure="flag"), device, args.rows)
         white = samples.white_noise(n, seed=1, device=device)
         report(f"voronoi {n} white k=64", lambda: torchvor.voronoi(white, box, k=64, on_failure="flag"), device, args.rows)
