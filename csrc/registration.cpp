@@ -25,15 +25,13 @@ TORCH_LIBRARY(torchvor, m) {
       "int memory_budget=536870912) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors, Tensor order)");
   // One Lloyd move of points (N, 3) whose cells came in grid order: row i of
-  // centroid (N, 3), status (N,) int8 and neighbors (N,) int32 is the cell
-  // of points[order[i]] (order (N,) int64). moved (N, 3): the centroid
-  // clamped to [lower, upper] ((1, 3) or (N, 3) by row), or the point where
-  // the cell failed; displacement2 (N,): |moved - point|^2; summary (1026,)
-  // int64: the bits of the largest displacement2, then the histogram of the
-  // neighbours of every sample_stride-th row (ops/lloyd.h).
+  // centroid (N, 3) and status (N,) int8 is the cell of points[order[i]]
+  // (order (N,) int64). moved (N, 3): the centroid clamped to [lower, upper]
+  // ((1, 3) or (N, 3) by row), or the point where the cell failed;
+  // displacement2 (N,): |moved - point|^2.
   m.def(
-      "lloyd_move(Tensor points, Tensor order, Tensor centroid, Tensor status, Tensor lower, Tensor upper, "
-      "Tensor neighbors, int sample_stride) -> (Tensor moved, Tensor displacement2, Tensor summary)");
+      "lloyd_move(Tensor points, Tensor order, Tensor centroid, Tensor status, Tensor lower, Tensor upper) "
+      "-> (Tensor moved, Tensor displacement2)");
 }
 
 // `import torchvor._C` loads this library, which runs the registrations above.

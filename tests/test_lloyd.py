@@ -231,81 +231,30 @@ def test_lloyd_move_against_tensor_ops(device, dtype, per_row_bounds):
     """Row i: the centroid clamped into the box, or (failed cell: not SUCCESS
     or DUPLICATE) the point order[i] it belongs to; and |moved - point|^2."""
     points, order, centroid, status, lower, upper = lloyd_move_inputs(device, dtype, per_row_bounds=per_row_bounds)
-    neighbors = torch.randint(0, 40, (points.shape[0],), generator=torch.Generator().manual_seed(1),
-                              dtype=torch.int32).to(device)
-    moved, displacement2, summary = torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper,
-                                                                  neighbors, 3)
+    moved, displacement2 = torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper)
     point = points[order]
     stays = ((status != 0) & (status != int(torchvor.CellStatus.DUPLICATE))).unsqueeze(1)
     expected = torch.where(stays, point, centroid.clamp(lower, upper))
     assert torch.equal(moved, expected)
     torch.testing.assert_close(displacement2, (expected - point).square().sum(1), rtol=1e-6, atol=0)
     assert bool((displacement2[stays.squeeze(1)] == 0).all())
-    check_summary(summary, displacement2, neighbors, 3)
-
-
-def check_summary(summary, displacement2, neighbors, stride):
-    """lloyd_move's summary: word 0 the bits of the largest displacement2,
-    then the histogram of every stride-th row's neighbours (1024 and more in
-    the last bin)."""
-    summary = summary.cpu()
-    assert summary.dtype == torch.int64 and summary.shape == (1 + torchvor.ops.NEEDED_BINS,)
-    largest = displacement2.max().cpu()
-    if largest.dtype == torch.float32:
-        bits = torch.tensor([int(summary[0])], dtype=torch.int32) if int(summary[0]) < 2**31 else \
-            torch.tensor([int(summary[0]) - 2**32], dtype=torch.int32)
-        read = bits.view(torch.float32)[0]
-    else:
-        read = summary[:1].view(torch.float64)[0]
-    assert torch.equal(read, largest) or (read.isnan() and largest.isnan())
-    expected = torch.bincount(neighbors[::stride].cpu().long().clamp(0, torchvor.ops.NEEDED_BINS - 1),
-                              minlength=torchvor.ops.NEEDED_BINS)
-    assert torch.equal(summary[1:], expected)
-
-
-def test_lloyd_move_summary_large(device):
-    """The summary over more rows than a block or a warp (the GPU reduces the
-    maximum within warps first), with neighbour counts past the last bin."""
-    gen = torch.Generator().manual_seed(5)
-    n = 100_003
-    points = torch.rand(n, 3, generator=gen).to(device)
-    order = torch.randperm(n, generator=gen).to(device)
-    centroid = torch.rand(n, 3, generator=gen).to(device)
-    status = torch.zeros(n, dtype=torch.int8, device=device)
-    bounds = torch.tensor([[0.0, 0.0, 0.0]], device=device), torch.tensor([[1.0, 1.0, 1.0]], device=device)
-    neighbors = torch.randint(0, 1500, (n,), generator=gen, dtype=torch.int32).to(device)
-    for stride in (1, 7, n + 1):
-        _, displacement2, summary = torch.ops.torchvor.lloyd_move(points, order, centroid, status, *bounds,
-                                                                  neighbors, stride)
-        check_summary(summary, displacement2, neighbors, stride)
 
 
 def test_lloyd_move_opcheck(device):
     for dtype in (torch.float32, torch.float64):
         for per_row_bounds in (False, True):
             args = lloyd_move_inputs(device, dtype, n=20, per_row_bounds=per_row_bounds)
-            neighbors = torch.arange(20, dtype=torch.int32, device=device)
-            torch.library.opcheck(torch.ops.torchvor.lloyd_move.default, (*args, neighbors, 2))
+            torch.library.opcheck(torch.ops.torchvor.lloyd_move.default, args)
     empty = torch.empty(0, 3, device=device)
     torch.library.opcheck(torch.ops.torchvor.lloyd_move.default,
                           (empty, torch.empty(0, dtype=torch.int64, device=device), empty,
                            torch.empty(0, dtype=torch.int8, device=device), torch.zeros(1, 3, device=device),
-                           torch.ones(1, 3, device=device), torch.empty(0, dtype=torch.int32, device=device), 1))
+                           torch.ones(1, 3, device=device)))
 
 
 def test_lloyd_move_bad_inputs(device):
     points, order, centroid, status, lower, upper = lloyd_move_inputs(device, torch.float32, n=10)
-    neighbors = torch.zeros(10, dtype=torch.int32, device=device)
-
-    def move(*args):
-        return torch.ops.torchvor.lloyd_move(*args, neighbors, 1)
-
-    with pytest.raises(TypeError, match="neighbors must be int32"):
-        torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper, neighbors.long(), 1)
-    with pytest.raises(ValueError, match="neighbors must have shape"):
-        torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper, neighbors[:9], 1)
-    with pytest.raises(ValueError, match="sample_stride must be >= 1"):
-        torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper, neighbors, 0)
+    move = torch.ops.torchvor.lloyd_move
     with pytest.raises(ValueError, match="centroid must have shape"):
         move(points, order, centroid[:9], status, lower, upper)
     with pytest.raises(TypeError, match="order must be int64"):
@@ -321,9 +270,8 @@ def test_lloyd_move_bad_inputs(device):
     # An order that is not a permutation of the rows gives NaN rows, never a read out of bounds.
     bad = order.clone()
     bad[2], bad[6] = -1, 10
-    moved, displacement2, summary = move(points, bad, centroid, status, lower, upper)
+    moved, displacement2 = move(points, bad, centroid, status, lower, upper)
     assert bool(moved[[2, 6]].isnan().all() and displacement2[[2, 6]].isnan().all())
-    check_summary(summary, displacement2, neighbors, 1)  # the largest displacement is NaN
     assert not bool(moved[[0, 1, 7]].isnan().any())
 
 

@@ -212,49 +212,42 @@ def _move_to_centroids(current: torch.Tensor, order: torch.Tensor, cells: Vorono
     (row i is the cell of ``current[order[i]]``); the moved points, the
     bounds and the diagonals are by row. The tail of every iteration, so it
     launches few kernels: on a GPU each one costs more host time than device
-    time. The move is one op (``torchvor::lloyd_move``: the centroid clamped
-    into the box, or the point where its cell failed), which also returns
-    the largest squared displacement and the histogram of the neighbours a
-    strided sample of the cells needed (its ``summary``); the energy is one
-    sum, in float64 (a float32 total blurs the small decrease of late
-    iterations). Then one read of all of it (12 kernels and the read took
-    ~0.55 ms of a 1M iteration on an H100 before; benchmarks/NOTES.md). A
-    failed cell's NaN second moment makes the energy NaN, and only then are
-    the failures counted. One box diagonal (float64, shape (1,)) divides the
-    largest displacement on the host; per-point diagonals (N,) divide the
-    displacements first.
+    time. The move itself is one op (``torchvor::lloyd_move``: the centroid
+    clamped into the box, or the point where its cell failed, and the squared
+    displacement). The energy is summed in float64 (a float32 total blurs the
+    small decrease of late iterations); a failed cell's NaN second moment
+    makes it NaN, and only then are the failures counted. The quantile comes
+    from a histogram read with the rest (O(N), no sort). One box diagonal
+    (float64, shape (1,)) divides the largest displacement on the host;
+    per-point diagonals (N,) divide the displacements first.
     """
     count = current.shape[0]
     if count == 0:
         return current.clone(), 0.0, 0.0, 0, 0
-    # The quantile of at most 2 * QUANTILE_SAMPLE cells spread over the input
-    # (its standard error is then ~0.05% of the cells).
-    stride = max(1, count // QUANTILE_SAMPLE)
-    moved, displacement2, summary = torch.ops.torchvor.lloyd_move.default(
-        current, order, cells.centroid, cells.status, lower, upper, cells.neighbors, stride)
+    moved, displacement2 = torch.ops.torchvor.lloyd_move.default(
+        current, order, cells.centroid, cells.status, lower, upper)
     one_diagonal = diagonal.shape[0] == 1
-    parts = [cells.second_moment.sum(dtype=torch.float64).view(1)]
-    if one_diagonal:
-        parts.append(diagonal[:1])
-    else:
-        parts.append((displacement2 / diagonal.square()).max().view(1).to(torch.float64))
-    # Every part as int64 words (float64 bits), so that one cat and one copy read them all.
-    read = torch.cat([p.view(torch.int64) for p in parts] + [summary]).cpu().numpy()
-    energy, second = read[:2].view(np.float64)
-    largest_bits = int(read[2])
-    if current.dtype == torch.float32:
-        largest = float(np.array([largest_bits], dtype=np.uint64).astype(np.uint32).view(np.float32)[0])
-    else:
-        largest = float(np.array([largest_bits], dtype=np.uint64).view(np.float64)[0])
-    max_displacement = math.sqrt(largest) / float(second) if one_diagonal else math.sqrt(float(second))
-    histogram = read[3:]
-    sampled = (count + stride - 1) // stride
-    rank = min(sampled, max(1, math.ceil(K_QUANTILE * sampled)))
-    needed = int(np.searchsorted(np.cumsum(histogram), rank))  # first bin whose cumulative count reaches rank
-    energy = float(energy)
+    if not one_diagonal:
+        displacement2 = displacement2 / diagonal.square()
+    # The quantile of at most 2 * QUANTILE_SAMPLE cells spread over the input
+    # (its standard error is then ~0.05% of the cells): a histogram of 1M
+    # counts took 0.1 ms of the GPU, the bins being few and contended.
+    sample = cells.neighbors[::max(1, count // QUANTILE_SAMPLE)]
+    # histc leaves out cells that needed more than 1024 neighbours; they lie above
+    # any quantile the histogram reaches, and if more than 1% do, `needed` comes out
+    # as 1024 (above MAX_K) because the cumulative count never reaches the rank.
+    bins = 1024
+    histogram = torch.histc(sample.to(torch.float64), bins=bins, min=0, max=bins)
+    read = torch.cat([cells.second_moment.sum(dtype=torch.float64).view(1),
+                      displacement2.max().view(1).to(torch.float64), diagonal[:1], histogram]).cpu().numpy()
+    energy, max_displacement = float(read[0]), math.sqrt(float(read[1]))
+    rank = min(sample.shape[0], max(1, math.ceil(K_QUANTILE * sample.shape[0])))
+    needed = int(np.searchsorted(np.cumsum(read[3:]), rank))  # first bin whose cumulative count reaches rank
     failed = 0
     if not math.isfinite(energy):
         failed = int(((cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)).sum())
+    if one_diagonal:
+        max_displacement /= float(read[2])
     return moved, energy, max_displacement, failed, needed
 
 

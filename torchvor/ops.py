@@ -13,10 +13,6 @@ import torch
 
 from . import _C  # noqa: F401  (registers torch.ops.torchvor.*)
 
-# Bins of torchvor::lloyd_move's histogram of the neighbours cells needed
-# (0 to 1023, and one for 1024 or more): csrc/ops/lloyd.h's kNeededBins.
-NEEDED_BINS = 1025
-
 BoxLike = Union[torch.Tensor, Sequence]
 
 
@@ -320,9 +316,9 @@ def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=512 << 20
 
 
 @torch.library.register_fake("torchvor::lloyd_move")
-def _lloyd_move_fake(points, order, centroid, status, lower, upper, neighbors, sample_stride):
+def _lloyd_move_fake(points, order, centroid, status, lower, upper):
     n = points.shape[0]
-    return points.new_empty((n, 3)), points.new_empty((n,)), points.new_empty((1 + NEEDED_BINS,), dtype=torch.int64)
+    return points.new_empty((n, 3)), points.new_empty((n,))
 
 
 @torch.library.register_fake("torchvor::voronoi_cells_grid_order")

@@ -118,41 +118,6 @@ TV_HD void atomic_increment(int32_t* word) {
 #endif
 }
 
-// *word += 1 and *word = max(*word, value), on 64-bit words, from many
-// threads at once. Unsigned: the bits of non-negative floats order as the
-// floats do (NaN's above +Inf).
-TV_HD void atomic_increment(uint64_t* word) {
-#if defined(__CUDA_ARCH__)
-  atomicAdd(reinterpret_cast<unsigned long long*>(word), 1ull);
-#else
-  __atomic_fetch_add(word, uint64_t(1), __ATOMIC_RELAXED);
-#endif
-}
-// For a word that most callers will not raise (a maximum over many rows):
-// on the GPU a whole warp first takes its lanes' maximum, and a value no
-// larger than what the word holds already costs no atomic (one address
-// taking an atomic from every thread would serialise them).
-TV_HD void atomic_max(uint64_t* word, uint64_t value) {
-#if defined(__CUDA_ARCH__)
-  const unsigned active = __activemask();
-  if (active == 0xffffffffu) {
-#pragma unroll
-    for (int offset = 16; offset > 0; offset >>= 1) {
-      const unsigned long long other = __shfl_xor_sync(active, static_cast<unsigned long long>(value), offset);
-      value = other > value ? other : value;
-    }
-    if ((threadIdx.x & 31u) != 0u) return;
-  }
-  if (value > *reinterpret_cast<volatile uint64_t*>(word)) {
-    atomicMax(reinterpret_cast<unsigned long long*>(word), static_cast<unsigned long long>(value));
-  }
-#else
-  uint64_t seen = __atomic_load_n(word, __ATOMIC_RELAXED);
-  while (seen < value && !__atomic_compare_exchange_n(word, &seen, value, true, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
-  }
-#endif
-}
-
 // list[(*count)++] = value if `keep`, from many threads at once; the order
 // of the list is not defined. A warp's values go in lane order with one
 // atomic add per warp (not one per value: a pass can fail 700K cells).

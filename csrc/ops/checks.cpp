@@ -155,8 +155,7 @@ void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t n
 }
 
 void check_lloyd_move_inputs(const at::Tensor& points, const at::Tensor& order, const at::Tensor& centroid,
-                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper,
-                             const at::Tensor& neighbors, int64_t sample_stride) {
+                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper) {
   check_points(points, "points");
   const int64_t n = points.size(0);
   check_like_points(points, centroid, "centroid");
@@ -178,12 +177,6 @@ void check_lloyd_move_inputs(const at::Tensor& points, const at::Tensor& order, 
                       "torchvor: ", name, " must have shape (1, 3) or (", n, ", 3), got ", shape_string(bound));
   }
   TORCH_CHECK_VALUE(lower.size(0) == upper.size(0), "torchvor: lower and upper must have the same shape");
-  check_same_device(points, "points", neighbors, "neighbors");
-  TORCH_CHECK_TYPE(neighbors.scalar_type() == at::kInt, "torchvor: neighbors must be int32, got ",
-                   c10::toString(neighbors.scalar_type()));
-  TORCH_CHECK_VALUE(neighbors.dim() == 1 && neighbors.size(0) == n, "torchvor: neighbors must have shape (", n,
-                    ",), got ", shape_string(neighbors));
-  TORCH_CHECK_VALUE(sample_stride >= 1, "torchvor: sample_stride must be >= 1, got ", sample_stride);
 }
 
 }  // namespace ops

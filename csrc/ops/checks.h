@@ -55,8 +55,7 @@ void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t n
 // Validates the arguments of torchvor::lloyd_move: shapes, dtypes, devices
 // (not the values: `order` out of range gives NaN rows, see LloydMoveFunctor).
 void check_lloyd_move_inputs(const at::Tensor& points, const at::Tensor& order, const at::Tensor& centroid,
-                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper,
-                             const at::Tensor& neighbors, int64_t sample_stride);
+                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper);
 
 }  // namespace ops
 }  // namespace torchvor

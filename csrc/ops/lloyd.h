@@ -4,7 +4,6 @@
 
 #include <ATen/ATen.h>
 
-#include <cstring>
 #include <tuple>
 
 #include "../core/common.h"
@@ -22,28 +21,6 @@ namespace ops {
 // clamp, subtraction, norm, the failed cells' where): 0.6 ms at 10M points
 // on an H100, and a launch each at 1M, where launches cost more host time
 // than device time.
-// What a move measured, in one int64 array (summary): word 0 holds the
-// bits of the largest |moved - point|^2 (a float32's widened, or a
-// float64's: non-negative floats order as their bits), words 1 + c count the
-// sampled rows (every sample_stride-th) whose cells needed c neighbours, the
-// last of them also those that needed more. torchvor.lloyd reads it with the
-// energy in one copy: its tail was ~12 launches before, ~0.55 ms of a 1M
-// iteration on an H100, mostly the host's (benchmarks/NOTES.md).
-constexpr int64_t kNeededBins = 1025;
-
-template <typename T>
-TV_HD uint64_t float_bits(T value) {
-  if constexpr (sizeof(T) == 4) {
-    uint32_t bits;
-    memcpy(&bits, &value, sizeof bits);
-    return bits;
-  } else {
-    uint64_t bits;
-    memcpy(&bits, &value, sizeof bits);
-    return bits;
-  }
-}
-
 template <typename T>
 struct LloydMoveFunctor {
   const T* points;         // (N, 3), the previous order
@@ -54,22 +31,14 @@ struct LloydMoveFunctor {
   const T* upper;
   int64_t bounds_stride;   // 0 (one box) or 3
   int64_t n;
-  const int32_t* neighbors;  // (N,), by row: the neighbours each cell needed
-  int64_t sample_stride;   // rows i with i % sample_stride == 0 go into the histogram
   T* moved;                // (N, 3), by row
   T* displacement2;        // (N,) |moved - point|^2
-  uint64_t* summary;       // (1 + kNeededBins,), zeroed
 
   TV_HD void operator()(int64_t i) const {
-    if (i % sample_stride == 0) {
-      const int32_t needed = neighbors[i];
-      core::atomic_increment(summary + 1 + (needed < 0 ? 0 : (needed >= kNeededBins ? kNeededBins - 1 : needed)));
-    }
     const int64_t row = order[i];
     const T nan = T(0) / T(0);
     if (row < 0 || row >= n) {  // not a permutation: NaN, never a read out of bounds
       moved[3 * i] = moved[3 * i + 1] = moved[3 * i + 2] = displacement2[i] = nan;
-      core::atomic_max(summary, float_bits(nan));
       return;
     }
     const int8_t code = status[i];
@@ -85,34 +54,28 @@ struct LloydMoveFunctor {
       sum += (to - point) * (to - point);
     }
     displacement2[i] = sum;
-    core::atomic_max(summary, float_bits(sum));
   }
 };
 
 template <typename Exec>
-std::tuple<at::Tensor, at::Tensor, at::Tensor> lloyd_move_forward(
-    const at::Tensor& points_in, const at::Tensor& order_in, const at::Tensor& centroid_in,
-    const at::Tensor& status_in, const at::Tensor& lower_in, const at::Tensor& upper_in,
-    const at::Tensor& neighbors_in, int64_t sample_stride) {
-  check_lloyd_move_inputs(points_in, order_in, centroid_in, status_in, lower_in, upper_in, neighbors_in,
-                          sample_stride);
+std::tuple<at::Tensor, at::Tensor> lloyd_move_forward(const at::Tensor& points_in, const at::Tensor& order_in,
+                                                      const at::Tensor& centroid_in, const at::Tensor& status_in,
+                                                      const at::Tensor& lower_in, const at::Tensor& upper_in) {
+  check_lloyd_move_inputs(points_in, order_in, centroid_in, status_in, lower_in, upper_in);
   const at::Tensor points = points_in.contiguous(), order = order_in.contiguous();
   const at::Tensor centroid = centroid_in.contiguous(), status = status_in.contiguous();
   const at::Tensor lower = lower_in.contiguous(), upper = upper_in.contiguous();
-  const at::Tensor neighbors = neighbors_in.contiguous();
   const int64_t n = points.size(0);
   const at::Tensor moved = Exec::empty({n, 3}, points.options());
   const at::Tensor displacement2 = Exec::empty({n}, points.options());
-  const at::Tensor summary = at::zeros({1 + kNeededBins}, points.options().dtype(at::kLong));
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::lloyd_move", [&] {
     Exec::for_each(n, LloydMoveFunctor<scalar_t>{
                           points.data_ptr<scalar_t>(), order.data_ptr<int64_t>(), centroid.data_ptr<scalar_t>(),
                           status.data_ptr<int8_t>(), lower.data_ptr<scalar_t>(), upper.data_ptr<scalar_t>(),
-                          lower.size(0) == 1 ? 0 : 3, n, neighbors.data_ptr<int32_t>(), sample_stride,
-                          moved.data_ptr<scalar_t>(), displacement2.data_ptr<scalar_t>(),
-                          reinterpret_cast<uint64_t*>(summary.data_ptr<int64_t>())});
+                          lower.size(0) == 1 ? 0 : 3, n, moved.data_ptr<scalar_t>(),
+                          displacement2.data_ptr<scalar_t>()});
   });
-  return {moved, displacement2, summary};
+  return {moved, displacement2};
 }
 
 }  // namespace ops
