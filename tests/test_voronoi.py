@@ -1154,6 +1154,13 @@ def test_opcheck_voronoi(device, dtype, gen):
     torch.library.opcheck(torch.ops.torchvor.voronoi_cells.default, (points, boxes, batch, 8, 1 << 20))
 
 
+def test_memory_budget_default_matches_the_schemas():
+    """The Python wrappers' default memory_budget is the ops' schema default."""
+    for op in (torch.ops.torchvor.voronoi_cells.default, torch.ops.torchvor.voronoi_cells_grid_order.default):
+        budget = next(a for a in op._schema.arguments if a.name == "memory_budget")
+        assert budget.default_value == torchvor.ops.DEFAULT_MEMORY_BUDGET
+
+
 def test_opcheck_voronoi_grid_order(device, dtype, gen):
     points = rand(30, gen, dtype, device)
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)

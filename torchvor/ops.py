@@ -13,6 +13,9 @@ import torch
 
 from . import _C  # noqa: F401  (registers torch.ops.torchvor.*)
 
+# voronoi's default memory_budget, as in the ops' schemas (csrc/registration.cpp).
+DEFAULT_MEMORY_BUDGET = 512 << 20
+
 BoxLike = Union[torch.Tensor, Sequence]
 
 
@@ -189,7 +192,7 @@ def voronoi(
     batch: Optional[torch.Tensor] = None,
     k: Optional[int] = None,
     on_failure: str = "warn",
-    memory_budget: int = 512 << 20,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
 ) -> VoronoiCells:
     """Volume, centroid and second moment of every 3D Voronoi cell, clipped to a box.
 
@@ -270,7 +273,7 @@ def voronoi(
 
 
 def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
-                           k: Optional[int] = None, memory_budget: int = 512 << 20):
+                           k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET):
     """The cells of :func:`voronoi` in the op's grid order, for :func:`torchvor.lloyd`.
 
     ``box`` is a (B, 2, 3) tensor (:func:`as_box`); failed cells are flagged
@@ -304,7 +307,7 @@ def _knn_fake(points, queries, k, batch=None, query_batch=None, exclude_self=Fal
 
 
 @torch.library.register_fake("torchvor::voronoi_cells")
-def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=512 << 20):
+def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET):
     n = points.shape[0]
     return (
         points.new_empty((n,)),
@@ -322,6 +325,6 @@ def _lloyd_move_fake(points, order, centroid, status, lower, upper):
 
 
 @torch.library.register_fake("torchvor::voronoi_cells_grid_order")
-def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=512 << 20):
+def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET):
     n = points.shape[0]
     return (*_voronoi_cells_fake(points, box, batch, k, memory_budget), points.new_empty((n,), dtype=torch.int64))

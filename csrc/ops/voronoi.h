@@ -299,7 +299,7 @@ VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions
 // The outputs by position, every status "not computed"; the records are
 // written by the passes (and by PoisonUnwrittenFunctor for the cells that
 // none wrote).
-template <typename Exec, typename io_t>
+template <typename io_t>
 PositionOutputs poisoned_outputs(int64_t n, const at::TensorOptions& options) {
   PositionOutputs out;
   out.records = empty_records<io_t>(n, options);
@@ -547,7 +547,8 @@ inline void needed_statistics(const int32_t* bins, int num_bins, double quantile
   // its lerp from the nearer end.
   const float rank = float(quantile) * float(count - 1);
   const int64_t below = static_cast<int64_t>(rank);
-  const float low = order_statistic(below), high = order_statistic(std::min(below + 1, count - 1));
+  const float low = static_cast<float>(order_statistic(below));
+  const float high = static_cast<float>(order_statistic(std::min(below + 1, count - 1)));
   const float weight = rank - float(below);
   at_quantile = weight < 0.5f ? low + weight * (high - low) : high - (high - low) * (1.0f - weight);
 }
@@ -600,7 +601,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                               c10::optional<int64_t> k_in, int64_t memory_budget, bool grid_order) {
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);
-  PositionOutputs out = poisoned_outputs<Exec, io_t>(n, points.options());
+  PositionOutputs out = poisoned_outputs<io_t>(n, points.options());
   if (n == 0) return finish_outputs<Exec, io_t>(out, points.options(), grid_order);
   // The largest batch element bounds the useful k: a query that asks for as
   // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
