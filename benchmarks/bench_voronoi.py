@@ -76,7 +76,8 @@ def main():
                         help="first-pass k, comma-separated to sweep; 0 = the library's default (k=None: "
                              "measured on a pilot sample) (default by kind: "
                              + ", ".join(f"{kind} {k}" for kind, k in DEFAULT_K.items()) + ")")
-    parser.add_argument("--memory-budget-mib", type=int, default=512, help="voronoi's memory_budget (the op's default)")
+    parser.add_argument("--memory-budget-mib", type=int, default=torchvor.ops.DEFAULT_MEMORY_BUDGET >> 20,
+                        help="voronoi's memory_budget (default: the op's)")
     parser.add_argument("--no-voro", action="store_true", help="skip the voro++ comparison")
     parser.add_argument("--lloyd-iteration", action="store_true", help="also time one Lloyd iteration")
     args = parser.parse_args()
