@@ -466,7 +466,8 @@ struct ConvexCell {
   // seed and the neighbour at neighbor[q - 6] (relative to the seed), kept
   // as that point: 12 bytes a plane, not 16 (as DualTriangle, for the
   // cache), and rebuilt as the clip built it (bisector_plane, squared_norm:
-  // bit for bit). Compaction keeps the faces' ids.
+  // bit for bit). Compaction keeps the faces' ids. The faces are written by
+  // the box start only (init_tetrahedron says why).
   Plane<T> box_face[kBoxPlanes];
   Vec3<T> neighbor[MAX_PLANES - kBoxPlanes];
   DualTriangle<T> triangle[MAX_TRIANGLES];
@@ -500,12 +501,15 @@ struct ConvexCell {
     }
   }
 
-  // The tetrahedron `start` (start_tetrahedron, inside the box [lo, hi]):
-  // its four bisectors are planes 6-9; the box's faces are kept as planes
-  // 0-5, which no vertex uses.
-  TV_HD void init_tetrahedron(Vec3<T> lo, Vec3<T> hi, const StartTetrahedron<T>& start, T relative_tolerance,
-                              int band_widenings) {
-    init_faces_and_settings(lo, hi, relative_tolerance, band_widenings);
+  // The tetrahedron `start` (start_tetrahedron, strictly inside the box):
+  // its four bisectors are planes 6-9. Planes 0-5, the box's faces, are left
+  // unwritten: no vertex of the tetrahedron lies on them and clips add only
+  // bisectors, so no triangle ever names them and plane() never reads them.
+  // Their 24 words a cell were stores to local memory that nothing read
+  // again; without them the blue-noise clip kernel took 0.8% less time
+  // (10M points, H100, benchmarks/NOTES.md).
+  TV_HD void init_tetrahedron(const StartTetrahedron<T>& start, T relative_tolerance, int band_widenings) {
+    init_settings(relative_tolerance, band_widenings);
     num_planes = kBoxPlanes + 4;
     num_triangles = 4;
     radius2 = T(0);
@@ -648,9 +652,13 @@ struct ConvexCell {
     return false;
   }
 
-  // What every start sets: the box's faces (planes 0-5) and the settings.
+  // What the box start sets: the box's faces (planes 0-5) and the settings.
   TV_HD void init_faces_and_settings(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
     for (int q = 0; q < kBoxPlanes; ++q) box_face[q] = box_plane(q, lo, hi);
+    init_settings(relative_tolerance, band_widenings);
+  }
+  // What every start sets.
+  TV_HD void init_settings(T relative_tolerance, int band_widenings) {
     tolerance = relative_tolerance;
     max_band_widenings = band_widenings;
     status = kSuccess;

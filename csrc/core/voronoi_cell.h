@@ -130,7 +130,7 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
         reader.read(choice.d, j, offset[3]);
         const StartTetrahedron<T> start = start_tetrahedron(offset, choice.positive, lo - seed, hi - seed);
         if (start.found) {
-          cell.init_tetrahedron(lo - seed, hi - seed, start, relative_tolerance, band_widenings);
+          cell.init_tetrahedron(start, relative_tolerance, band_widenings);
           used_by_start = choice.used();
         }
       }
