@@ -2,7 +2,9 @@
 machine (no GPU; needs g++): neighbours read, clips, planes that miss the
 cell, triangles at a clip, triangles a clip removes, and a model of a warp of
 32 consecutive cells in lockstep against lanes that take new cells as they
-finish (benchmarks/NOTES.md, twenty-eighth session).
+finish (benchmarks/NOTES.md, twenty-eighth session); then lockstep on warps of
+alike cells (windows of cells sorted by their start tetrahedron's radius);
+then the clips in grid-shell order (candidates from a grid, not the kNN list).
 
     python benchmarks/clip_shape.py [--size 100K] [--kind blue] [--k 19]
 
