@@ -46,15 +46,17 @@ def assert_same_cells(cells, expected, dtype):
     assert_same_integrals(cells, expected, dtype)
 
 
-def assert_same_integrals(cells, expected, dtype):
+def assert_same_integrals(cells, expected, dtype, offset=0.0):
     """The same statuses, and the same integrals up to rounding, whatever
-    neighbours the cells counted (assert_same_cells without them)."""
+    neighbours the cells counted (assert_same_cells without them). Centroids
+    near `offset` may also differ by the rounding of coordinates there."""
     assert torch.equal(expected.status, cells.status)
     rtol = RTOL[dtype]
     size = float(expected.volume.double().mean()) ** (1 / 3)
     torch.testing.assert_close(cells.volume, expected.volume, rtol=rtol, atol=rtol * size ** 3)
     torch.testing.assert_close(cells.second_moment, expected.second_moment, rtol=rtol, atol=rtol * size ** 5)
-    torch.testing.assert_close(cells.centroid, expected.centroid, rtol=0, atol=rtol * size)
+    coordinate_ulp = float(torch.finfo(dtype).eps) * abs(offset)
+    torch.testing.assert_close(cells.centroid, expected.centroid, rtol=0, atol=rtol * size + 2 * coordinate_ulp)
 
 
 def point_set(kind, gen, seed, dtype, device):
@@ -252,8 +254,12 @@ def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, s
     the tetrahedra in another order). On the CPU a thread per cell runs the
     AVX2+FMA loop where the CPU has it, and the lanes the baseline loop: fused
     and separate roundings moved the security radius by one neighbour in ~6%
-    of clustered sets, so both run the baseline loop here."""
+    of clustered sets, so both run the baseline loop here. Float32 thread
+    cells keep full triangle records here (TORCHVOR_THREAD_TRIANGLES=full):
+    compact ones round their vertices, which moves some radii of security as
+    well (test_compact_triangles_match_full)."""
     monkeypatch.setenv("TORCHVOR_CPU_ISA", "baseline")
+    monkeypatch.setenv("TORCHVOR_THREAD_TRIANGLES", "full")
     points = point_set(kind, gen, seed, dtype, device)
     k = 4 if kind == "small_k" else None  # small_k: every cell retried, the later passes too
     results = {}
@@ -297,6 +303,45 @@ def test_tetrahedron_start_matches_box_start(monkeypatch, device, dtype, gen, se
     assert_same_cells(from_tetrahedron, from_box, dtype)
     if kind == "white":
         assert not torch.equal(from_box.volume, from_tetrahedron.volume)
+
+
+@pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "perturbed", "duplicates", "near_faces",
+                                  "offset", "small", "large"])
+def test_compact_triangles_match_full(monkeypatch, device, gen, seed, kind):
+    """Float32 thread cells of up to 32 planes keep their triangles in 12
+    bytes (csrc/core/convex_cell.h, CompactTriangles: coordinates rounded to
+    18 mantissa bits, the plane ids in the 5 bits that frees).
+    TORCHVOR_THREAD_TRIANGLES=full keeps 16-byte records. Both meet the
+    oracle, with the same statuses and the same integrals up to rounding, at
+    any offset and scale (small: a box of 1e-6, large: of 1e8 at -3e8). The
+    radius of security comes from the rounded vertices, so a neighbour count
+    may differ by one, rarely. (The oracle's Qhull works to absolute
+    tolerances: not at those two scales.)"""
+    monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, on either device
+    dtype = torch.float32
+    box, lo = UNIT, 0.0
+    if kind == "near_faces":
+        points = torch.cat([rand(1000, gen, dtype, device), near_faces(2000, gen, dtype, device)])
+    elif kind in ("offset", "small", "large"):
+        lo, size = {"offset": (1e4, 1.0), "small": (0.0, 1e-6), "large": (-3e8, 1e8)}[kind]
+        box = ([lo] * 3, [lo + size] * 3)
+        points = rand(500 if kind == "offset" else 3000, gen, dtype, device, lo, lo + size)
+    else:
+        points = point_set(kind, gen, seed, dtype, device)
+    results = {}
+    for triangles in ("full", "compact"):
+        monkeypatch.setenv("TORCHVOR_THREAD_TRIANGLES", triangles)
+        results[triangles] = torchvor.voronoi(points, box)
+    full, compact = results["full"], results["compact"]
+    lohi = box_of(points, box)
+    check_global(compact, points, [lohi], dtype)
+    if kind not in ("small", "large"):
+        check_against_oracle(compact, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype])
+    assert_same_integrals(compact, full, dtype, offset=lo)
+    differ = (compact.neighbors - full.neighbors).abs()
+    assert differ.max() <= 1 and (differ > 0).float().mean() < 0.01
+    if kind == "white":
+        assert not torch.equal(full.volume, compact.volume)  # the compact form was used
 
 
 @pytest.mark.parametrize("k", [4, None])
@@ -1345,7 +1390,7 @@ def clip_kernels_run(call):
     kinds = set()
     for name in (event.key for event in prof.key_averages() if "ClipFunctor" in event.key):
         cells = "warp" if "for_each_cooperative_claimed_kernel" in name else "thread"
-        finished_on_grid = re.search(r"ClipFunctor<[^>]*,\s*true>", name) is not None
+        finished_on_grid = re.search(r"ClipFunctor<[^,>]*,[^,>]*,[^,>]*,\s*true\b", name) is not None  # kVertexBalls
         kinds.add(f"vertex balls, {cells}" if finished_on_grid else cells)
     return result, kinds
 

@@ -95,8 +95,10 @@ constexpr int kVertexBallPlanes = 160;
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
 // kVertexBalls, a cell whose neighbours run out before the radius of
-// security is finished on the grid (core::finish_by_vertex_balls).
-template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false>
+// security is finished on the grid (core::finish_by_vertex_balls). With
+// kCompactTriangles, a thread cell keeps its triangles in 12 bytes
+// (core::CompactTriangles: float32, at most 32 planes).
+template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false, bool kCompactTriangles = false>
 struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
   using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
@@ -118,7 +120,7 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
 
   // One thread computes cell t.
   TV_HD void operator()(int64_t t) const {
-    core::ConvexCell<T, MAX_PLANES, kMaxTriangles> cell;
+    core::ConvexCell<T, MAX_PLANES, kMaxTriangles, kCompactTriangles> cell;
     write(t, compute(cell, t));
   }
 
@@ -315,6 +317,14 @@ inline bool tetrahedron_start() {
   return !(forced != nullptr && std::strcmp(forced, "box") == 0);
 }
 
+// Whether float32 thread cells of at most 32 planes keep their triangles in
+// 12 bytes (core::CompactTriangles), as by default, or in 16:
+// TORCHVOR_THREAD_TRIANGLES=full (the tests compare the two; benchmarks time them).
+inline bool compact_triangles() {
+  const char* forced = std::getenv("TORCHVOR_THREAD_TRIANGLES");
+  return !(forced != nullptr && std::strcmp(forced, "full") == 0);
+}
+
 // Clips a chunk of cells. With `vertex_balls` (the grid of `points` by
 // position), cells whose neighbours run out before the radius of security
 // are finished on it (ClipFunctor's kVertexBalls).
@@ -325,8 +335,10 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
                 PositionOutputs& out) {
   static_assert(!kVertexBalls || MAX_PLANES == kVertexBallPlanes, "vertex-ball passes run at the largest tier");
-  const auto functor = [&]() {
-    ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls> clip{
+  constexpr bool kCompactPossible = std::is_same<T, float>::value && MAX_PLANES <= 32;
+  // The functor with or without compact triangles (std::true_type or std::false_type).
+  const auto functor = [&](auto compact) {
+    ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls, decltype(compact)::value> clip{
         {},
         points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
@@ -346,18 +358,22 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // (their sweeps' lengths): the backend's choice for the widest spread,
   // warps on the GPU (each sweeps its cell's rows and points together,
   // where a thread's cell waited on its own loads: vertex_balls.h).
+  // Float32 thread cells of the first tier keep their triangles in 12 bytes
+  // (compact_triangles).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
-    Exec::for_each(cells.size(0), functor());
+    Exec::for_each(cells.size(0), functor(std::false_type()));
   } else {
     const c10::optional<double> spread =
         kVertexBalls ? c10::optional<double>(std::numeric_limits<double>::infinity()) : neighbor_spread;
     if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
       Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
-                                                                                          functor());
+                                                                                          functor(std::false_type()));
+    } else if (kCompactPossible && compact_triangles()) {
+      if constexpr (kCompactPossible) Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::true_type()));
     } else {
-      Exec::for_each_cell(cells.size(0), neighbors.size(1), functor());
+      Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::false_type()));
     }
   }
 }
