@@ -472,8 +472,9 @@ struct TriangleSlots {
 // and its 5 low bits hold one corner's plane id.
 // Why: the thread cell's speed is bound by how much cell state its threads
 // keep in the L1 cache, and the triangles are most of it. 16 -> 12 bytes
-// took the blue-noise clip kernel from 27.15 to 25.31 ms at 10M points, and
-// the call from 37.42 to 35.55 ms (H100, benchmarks/NOTES.md).
+// took the blue-noise clip kernel from 27.03 to 25.04 ms at 10M points, and
+// the call from 37.70 to 35.63 ms; perturbed grids' clip 110.1 -> 97.2 ms
+// (H100, benchmarks/NOTES.md).
 // The cost: vertices held to 2^-19 relative instead of float32's 2^-24.
 // Float32 volumes of 200K white-noise cells then differ from float64's by at
 // most 5.6e-6 relative instead of 8.8e-7 (median 2.8e-7 against 1.2e-7).
