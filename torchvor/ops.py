@@ -225,8 +225,8 @@ def voronoi(
     their vertices to 18 mantissa bits, which keeps the GPU's cell state
     small: 200K white-noise volumes then differ from float64's by at most
     6e-6 relative (9e-7 with full float32 vertices; the environment
-    variable ``TORCHVOR_THREAD_TRIANGLES=full`` keeps them, ~8% slower on
-    blue noise on an H100). Use float64 points for more.
+    variable ``TORCHVOR_THREAD_TRIANGLES=full`` keeps them: on an H100,
+    10M blue-noise points then take ~6% longer). Use float64 points for more.
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``.

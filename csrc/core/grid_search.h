@@ -8,7 +8,6 @@
 #pragma once
 
 #include <cmath>
-#include <cstring>
 #include <type_traits>
 
 #if !defined(__CUDA_ARCH__)
@@ -77,16 +76,9 @@ template <typename T> struct HeapKey;
 template <> struct HeapKey<float> {
   uint64_t bits;
   TV_HD static HeapKey make(float dist2, int32_t index) {
-    uint32_t d;
-    memcpy(&d, &dist2, sizeof d);
-    return {(uint64_t(d) << 32) | uint32_t(index)};
+    return {(uint64_t(float_bits(dist2)) << 32) | uint32_t(index)};
   }
-  TV_HD float dist2() const {
-    const uint32_t d = uint32_t(bits >> 32);
-    float f;
-    memcpy(&f, &d, sizeof f);
-    return f;
-  }
+  TV_HD float dist2() const { return bits_float(uint32_t(bits >> 32)); }
   TV_HD int32_t index() const { return int32_t(uint32_t(bits)); }
   TV_HD bool operator<(const HeapKey& other) const { return bits < other.bits; }
   // `when ? a : b` as bit operations: host compilers turn the ternary into an

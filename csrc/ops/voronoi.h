@@ -370,9 +370,13 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
     if (use_cooperative("TORCHVOR_CELLS", Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
       Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
                                                                                           functor(std::false_type()));
-    } else if (kCompactPossible && compact_triangles()) {
-      if constexpr (kCompactPossible) Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::true_type()));
     } else {
+      if constexpr (kCompactPossible) {
+        if (compact_triangles()) {
+          Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::true_type()));
+          return;
+        }
+      }
       Exec::for_each_cell(cells.size(0), neighbors.size(1), functor(std::false_type()));
     }
   }
