@@ -59,6 +59,23 @@ def assert_same_integrals(cells, expected, dtype, offset=0.0):
     torch.testing.assert_close(cells.centroid, expected.centroid, rtol=0, atol=rtol * size + 2 * coordinate_ulp)
 
 
+def assert_same_cloud(part, alone, dtype):
+    """A batch element's cells (`part`) against its cloud computed alone. In
+    float64 they are equal bit for bit. In float32 a cell's last pass can
+    differ: the first pass's k is the pilot's, which follows the whole batch,
+    so a cell may succeed in a thread cell of the first tier (vertices held
+    to 18 mantissa bits, CompactTriangles) in one run and after a retry of a
+    higher tier (full float32 vertices) in the other; then the integrals
+    agree up to rounding and the neighbour counts within one (the radius of
+    security comes from the vertices)."""
+    if dtype == torch.float64:
+        for a, b in zip(part, alone):
+            assert torch.equal(a, b)
+        return
+    assert_same_integrals(part, alone, dtype)
+    assert int((part.neighbors - alone.neighbors).abs().max()) <= 1
+
+
 def point_set(kind, gen, seed, dtype, device):
     """The point sets that tests comparing two ways of computing the cells
     run on: 3000 uniform, clustered or perturbed-grid points, a 10^3
@@ -876,8 +893,7 @@ def test_batch_per_cloud_boxes(device, dtype, gen, cells_impl, vertex_balls):
                 # clip in another order than the radius of security
                 assert_same_integrals(type(sub)(*(a[start:start + s] for a in cells)), sub, dtype)
             else:
-                for a, b in zip(cells, sub):
-                    assert torch.equal(a[start:start + s], b)
+                assert_same_cloud(type(sub)(*(a[start:start + s] for a in cells)), sub, dtype)
             check_against_oracle(sub, part, lohi, pick_cells(part, 25, gen, *lohi), RTOL[dtype], tag=f"cloud@{start}")
         start += s
 
@@ -897,8 +913,7 @@ def test_batch_bounding_boxes(device, dtype, gen):
     check_global(cells, points, boxes, dtype, batch)
     part = points[200:320]
     sub = run(part)
-    for a, b in zip(cells, sub):
-        assert torch.equal(a[200:320], b)
+    assert_same_cloud(type(sub)(*(a[200:320] for a in cells)), sub, dtype)
     check_against_oracle(sub, part, boxes[2], pick_cells(part, 30, gen, *boxes[2]), RTOL[dtype])
 
 
