@@ -828,6 +828,21 @@ def test_duplicate_neighbours_regression(device, dtype_):
     check_against_oracle(cells, points, lohi, range(5), RTOL[dtype_])
 
 
+def test_inverse_order_in_ranges(device, dtype, gen, monkeypatch):
+    """The inverse of the grid order is written in ranges of rows that fit
+    the GPU's L2 cache (one range below ~6M points on an H100):
+    TORCHVOR_TEST_SCATTER_BYTES=1000 splits 3000 points into 12 ranges, and
+    the outputs, in the caller's rows, are those of one range bit for bit."""
+    points = rand(3000, gen, dtype, device)
+    reference = torchvor.voronoi(points, UNIT, on_failure="flag")
+    monkeypatch.setenv("TORCHVOR_TEST_SCATTER_BYTES", "1000")
+    cells = torchvor.voronoi(points, UNIT, on_failure="flag")
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        assert torch.equal(getattr(cells, name), getattr(reference, name)), name
+    check_against_oracle(cells, points, (np.zeros(3), np.ones(3)), pick_cells(points, 20, gen, np.zeros(3), np.ones(3)),
+                         RTOL[dtype])
+
+
 def test_unwritten_cell_reads_not_computed(device, dtype, monkeypatch):
     """Only the statuses are poisoned before the passes; a cell that no pass
     writes (simulated: the first pass's result for one grid position is

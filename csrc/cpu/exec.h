@@ -5,6 +5,7 @@
 #include <ATen/Parallel.h>
 
 #include <cstddef>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -46,9 +47,24 @@ struct CpuExec {
 
   // The permutation (int32) that sorts `keys` (int32, each below 2^bits)
   // stably.
-  static at::Tensor stable_order(const at::Tensor& keys, int /*bits*/) {
+  static at::Tensor stable_order(const at::Tensor& keys, int /*bits*/, const at::Tensor& /*identity*/ = {}) {
     return std::get<1>(at::sort(keys, /*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
   }
+
+  // A small tensor read on the host: here it is there already.
+  class HostRead {
+   public:
+    explicit HostRead(const at::Tensor& words) : words_(words) {}
+    at::Tensor wait() const { return words_; }
+
+   private:
+    at::Tensor words_;
+  };
+
+  // The bytes a scattering kernel writes in one pass (InvertOrderFunctor):
+  // no limit, as the GPU's L2 sets one (CudaExec) and a core's caches gain
+  // nothing from several passes over the reads.
+  static int64_t cached_scatter_bytes() { return std::numeric_limits<int64_t>::max(); }
 
   template <typename Functor>
   static void for_each(int64_t n, const Functor& functor) {

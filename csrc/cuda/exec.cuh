@@ -140,11 +140,12 @@ struct CudaExec {
   // The permutation (int32) that sorts `keys` (int32, each below 2^bits)
   // stably: cub's radix sort over those bits only, carrying int32 indices.
   // (at::sort carried int64 indices through all 32 bits of the keys: four
-  // passes where a grid of 5M cells needs three.)
-  static at::Tensor stable_order(const at::Tensor& keys, int bits) {
+  // passes where a grid of 5M cells needs three.) `identity`, where given,
+  // is iota(n), which the sort reads as its indices.
+  static at::Tensor stable_order(const at::Tensor& keys, int bits, const at::Tensor& given_identity = {}) {
     const int64_t n = keys.size(0);
     TORCH_CHECK(n < (int64_t(1) << 31), "torchvor: too many points for int32 indices");
-    const at::Tensor identity = iota(n, keys.options());
+    const at::Tensor identity = given_identity.defined() ? given_identity : iota(n, keys.options());
     if (n == 0) return identity;
     const at::Tensor sorted_keys = at::empty_like(keys);
     const at::Tensor order = at::empty_like(keys);
@@ -160,6 +161,40 @@ struct CudaExec {
     const at::Tensor scratch = at::empty({static_cast<int64_t>(scratch_bytes)}, keys.options().dtype(at::kByte));
     C10_CUDA_CHECK(sort(scratch.data_ptr(), scratch_bytes));
     return order;
+  }
+
+  // A small device tensor's copy to the host (pinned memory), which the
+  // host waits for only in wait(): what the caller launches in between runs
+  // on the device while the copy travels back and the host waits.
+  class HostRead {
+   public:
+    explicit HostRead(const at::Tensor& device)
+        : host_(at::empty(device.sizes(), device.options().device(at::kCPU).pinned_memory(true))) {
+      host_.copy_(device, /*non_blocking=*/true);
+      C10_CUDA_CHECK(cudaEventCreateWithFlags(&copied_, cudaEventDisableTiming));
+      C10_CUDA_CHECK(cudaEventRecord(copied_, at::cuda::getCurrentCUDAStream()));
+    }
+    HostRead(const HostRead&) = delete;
+    HostRead& operator=(const HostRead&) = delete;
+    ~HostRead() { C10_CUDA_CHECK_WARN(cudaEventDestroy(copied_)); }
+    at::Tensor wait() const {
+      C10_CUDA_CHECK(cudaEventSynchronize(copied_));
+      return host_;
+    }
+
+   private:
+    at::Tensor host_;
+    cudaEvent_t copied_ = nullptr;
+  };
+
+  // The bytes a scattering kernel should write in one launch so that its
+  // writes fill whole sectors in the L2 cache before they reach memory: half
+  // the L2 (the launch's reads pass through it too).
+  static int64_t cached_scatter_bytes() {
+    int device = 0, l2_bytes = 0;
+    C10_CUDA_CHECK(cudaGetDevice(&device));
+    C10_CUDA_CHECK(cudaDeviceGetAttribute(&l2_bytes, cudaDevAttrL2CacheSize, device));
+    return std::max<int64_t>(1 << 20, l2_bytes / 2);
   }
 
   template <typename Functor>

@@ -210,10 +210,13 @@ inline at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at:
 }
 
 // Grid over the bounding box of each batch element's points; `bounds` is
-// point_bounds() of them (read here when not given).
+// point_bounds() of them (read here when not given). `identity`, where the
+// caller has it, is 0, 1, ..., N - 1 as int32 (the sort's indices: one
+// kernel less).
 template <typename Exec>
 Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
-                int64_t num_batches, double points_per_cell, at::Tensor bounds = {}) {
+                int64_t num_batches, double points_per_cell, at::Tensor bounds = {},
+                const at::Tensor& identity = {}) {
   if (!bounds.defined()) bounds = point_bounds(points, batch, num_batches);
   const double* bounds_ptr = bounds.data_ptr<double>();
 
@@ -267,7 +270,7 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   // bits the cell ids use (Exec::stable_order).
   const at::Tensor counts = at::zeros({total_cells + 1}, points.options().dtype(at::kInt));
   const at::Tensor ids = cell_ids<Exec>(points, batch, grid, counts);
-  const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells));
+  const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells), identity);
   grid.sorted_points = gather_points<Exec>(points, permutation);
   grid.sorted_index = permutation;
   grid.cell_start = counts.cumsum(0, at::kInt);
