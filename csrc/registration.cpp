@@ -14,7 +14,7 @@ TORCH_LIBRARY(torchvor, m) {
   // neighbours; None measures it on a pilot sample of cells.
   m.def(
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
-      "int memory_budget=536870912) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors)");
   // The same cells in the op's grid order (cells of nearby points in nearby
   // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
@@ -22,7 +22,7 @@ TORCH_LIBRARY(torchvor, m) {
   // points in this order, so that the next call's order is nearly the identity.
   m.def(
       "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
-      "int memory_budget=536870912) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors, Tensor order)");
   // One Lloyd move of points (N, 3) whose cells came in grid order: row i of
   // centroid (N, 3) and status (N,) int8 is the cell of points[order[i]]

@@ -281,12 +281,17 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
 // points) let the distance pruning of the ring search scan little more than
 // the k-ball itself. Measured (benchmarks/NOTES.md): CPU 3.45 us/query at k=35
 // against 5.0 with k / 4; H200 1M k=35 5.3 ms against 7.8 with k / 4.
+// At least 1.5 points a cell: on 10M blue noise (k=19, H100) the first
+// pass's kNN kernel took 7.68 ms at 1.5 against 7.98 at 2 (the floor before),
+// and the clip kernel gave back the gain below that (1.25: 7.58 and +0.14
+// ms; 1.0: 7.44 and +0.16). Perturbed grids and white noise (k >= 40) were
+// unchanged.
 // TORCHVOR_POINTS_PER_CELL_SCALE multiplies it (benchmarks/sweep_points_per_cell.py).
 inline double points_per_cell_for(int64_t k) {
   double scale = 1.0;
   if (const char* chosen = std::getenv("TORCHVOR_POINTS_PER_CELL_SCALE")) scale = std::atof(chosen);
   if (!(scale > 0.0)) scale = 1.0;
-  return scale * std::min(32.0, std::max(2.0, double(k) / 16.0));
+  return scale * std::min(32.0, std::max(1.5, double(k) / 16.0));
 }
 
 }  // namespace ops

@@ -709,12 +709,13 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, neighbor_spread, memory_budget, out);
   };
   // The grid's density follows k (points_per_cell_for). Without k, the pilot
-  // runs on the density of k = 32 and the grid is rebuilt when the measured
-  // k wants cells half as full again or more (white noise: k ~ 62, 4 points a
+  // runs on the densest grid of that rule (1.5 points a cell, which is blue
+  // noise's: k ~ 19) and the grid is rebuilt when the measured k wants cells
+  // half as full again or more (k >= 36; white noise: k ~ 62, 4 points a
   // cell; on 2 CPU cores 100K white 511 -> 484 ms). The main pass recomputes
   // every cell, so the pilot's outputs, numbered in the old order, are
   // overwritten.
-  const double first_points_per_cell = points_per_cell_for(k_in.value_or(32));
+  const double first_points_per_cell = points_per_cell_for(k_in.value_or(0));
   sort_into_grid(first_points_per_cell);
   int64_t k = k_in.value_or(0);
   c10::optional<double> neighbor_spread;  // from the pilot, where one runs
