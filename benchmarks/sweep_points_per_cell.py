@@ -55,7 +55,7 @@ def main():
         return ["-" if kernel is None else f"{kernel:.2f} ms", common.fmt_s(wall)]
 
     rows = common.sweep_environment(VARIABLE, scales, cases, measure)
-    common.print_results("kNN and voronoi against the grid's points per cell (scale of k / 16, at least 2)",
+    common.print_results("kNN and voronoi against the grid's points per cell (scale of k / 16, at least 1.5)",
                          ["case", "scale", "kNN kernels", "call"], rows)
 
 
