@@ -55,7 +55,7 @@ struct PositionOutputs {
   at::Tensor records;          // (N, sizeof(CellRecord<io_t>)) uint8
   at::Tensor status;           // (N,) int8, the records' statuses again
   at::Tensor row_of_position;  // (N,) int32
-  at::Tensor position_of_row;  // (N,) int32, its inverse, or undefined (finish_outputs computes it)
+  at::Tensor position_of_row;  // (N,) int32, its inverse: the first pass's status read computes it
 
   template <typename io_t>
   CellRecord<io_t>* data() const {
@@ -261,7 +261,8 @@ at::Tensor invert_order(const at::Tensor& row_of_position) {
   const int64_t n = row_of_position.size(0);
   const at::Tensor position_of_row = Exec::empty({n}, row_of_position.options());
   const char* test_bytes = std::getenv("TORCHVOR_TEST_SCATTER_BYTES");
-  const int64_t range_bytes = test_bytes != nullptr ? std::atoll(test_bytes) : Exec::cached_scatter_bytes();
+  const int64_t test_range = test_bytes != nullptr ? std::atoll(test_bytes) : 0;
+  const int64_t range_bytes = test_range > 0 ? test_range : Exec::cached_scatter_bytes();
   const int64_t rows_per_range = std::max<int64_t>(1, range_bytes / int64_t(sizeof(int32_t)));
   for (int64_t first = 0; first < n; first += rows_per_range) {
     Exec::for_each(n, InvertOrderFunctor{row_of_position.data_ptr<int32_t>(), position_of_row.data_ptr<int32_t>(),
@@ -331,7 +332,8 @@ VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions
   if (n > 0) {
     at::Tensor position_of_row;
     if (!grid_order) {
-      position_of_row = in.position_of_row.defined() ? in.position_of_row : invert_order<Exec>(in.row_of_position);
+      TORCH_CHECK(in.position_of_row.defined(), "torchvor: internal error: the inverse order was not computed");
+      position_of_row = in.position_of_row;
     }
     Exec::for_each(n, ToRowsFunctor<io_t>{grid_order ? nullptr : position_of_row.data_ptr<int32_t>(),
                                           in.data<io_t>(), volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),
@@ -746,7 +748,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     const int64_t scan_threads = StatusScanFunctor::threads(pending.size(0));
     Exec::for_each(scan_threads,
                    StatusScanFunctor{out.status.data_ptr<int8_t>(),
-                                     attempt == 0 ? nullptr : pending.data_ptr<int32_t>(),  // the first: every position
+                                     pending.is_same(positions) ? nullptr : pending.data_ptr<int32_t>(),
                                      pending.size(0), scan_threads, failed_cells.data_ptr<int32_t>(),
                                      words.data_ptr<int32_t>()});
     const typename Exec::HostRead reading(words);
