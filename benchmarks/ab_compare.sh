@@ -5,8 +5,11 @@
 # optional: A/B/C...) and this tree side by side under /tmp, then runs
 # benchmarks/ab_time.py on each in turn, ROUNDS times. No pip install: each
 # build is imported through PYTHONPATH (the machine must not have torchvor
-# installed in editable mode, whose import hook would win).
-#   usage: [MID_TREES="ab_mid"] bash benchmarks/ab_compare.sh OLD_TREE [ROUNDS] [NEW_LABEL]
+# installed in editable mode, whose import hook would win). AB_SCRIPT, if set,
+# runs instead of ab_time.py (a script under this checkout and its arguments,
+# e.g. "benchmarks/ab_env.py default --pilot --kernels --rounds 5"), after a
+# line "== LABEL, round R".
+#   usage: [MID_TREES="ab_mid"] [AB_SCRIPT=...] bash benchmarks/ab_compare.sh OLD_TREE [ROUNDS] [NEW_LABEL]
 set -eu -o pipefail
 ROUNDS=${2:-2}
 REPO=$(cd "$(dirname "$0")/.." && pwd)
@@ -35,6 +38,12 @@ for round in $(seq "$ROUNDS"); do
   for tree in "${labels[@]}"; do
     label=$tree
     [ "$tree" = new ] && label=${3:-new}
-    PYTHONPATH=/tmp/ab_$tree python3 "$REPO/benchmarks/ab_time.py" "$label, round $round"
+    if [ -n "${AB_SCRIPT:-}" ]; then
+      echo "== $label, round $round"
+      # shellcheck disable=SC2086  # the script and its arguments, split on purpose
+      (cd "$REPO" && PYTHONPATH=/tmp/ab_$tree python3 $AB_SCRIPT)
+    else
+      PYTHONPATH=/tmp/ab_$tree python3 "$REPO/benchmarks/ab_time.py" "$label, round $round"
+    fi
   done
 done
