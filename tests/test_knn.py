@@ -202,6 +202,35 @@ def test_anisotropic_and_flat(device, dtype, gen, knn_impl):
     assert result.idx.cpu().tolist() == expected
 
 
+def test_long_strip_of_cells(device, dtype, gen, knn_impl):
+    """100000 integer points on a strip five points wide: ~22000 x 4 grid
+    cells, where a float32 cell position along x (up to 2.2e4) is rounded to
+    ~0.002 of a cell, more than the grid's margin (1e-3 of a cell). The
+    search's row ranges along x (Rings::row_cell, a product by 1 / h where the
+    points' cells come from a division) must still reach every point at the
+    k-th distance, ties included: squared distances are exact small integers,
+    so the result must equal the oracle's index for index."""
+    width, n = 5, 100_000
+    strip = torch.zeros(n, 3, dtype=torch.float64)
+    order = torch.randperm(n, generator=gen)
+    strip[:, 0] = (order // width).double()
+    strip[:, 1] = (order % width).double()
+    points = strip.to(dtype).to(device)
+    queries = torch.zeros(300, 3, dtype=torch.float64)
+    queries[:, 0] = torch.randint(0, 2 * n // width, (300,), generator=gen).double() / 2
+    queries[:, 1] = torch.randint(0, 2 * width - 1, (300,), generator=gen).double() / 2
+    queries = queries.to(dtype).to(device)
+    k = 8
+    assert_exact(torchvor.knn(points, k, queries), exact_knn_with_ties(points, k, queries))
+    # The points as their own queries: each excludes itself, the oracle's first column.
+    some = torch.randperm(n, generator=gen)[:300].to(device)
+    result = torchvor.knn(points, k)
+    ref_d, ref_i = exact_knn_with_ties(points, k + 1, points[some], exclude_self=False)
+    assert (ref_i[:, 0] == some.cpu().numpy()).all()
+    np.testing.assert_array_equal(result.idx[some].cpu().numpy(), ref_i[:, 1:])
+    np.testing.assert_array_equal(result.dist2[some].cpu().double().numpy(), ref_d[:, 1:])
+
+
 def test_separate_queries(device, dtype, gen, knn_impl):
     points = rand(1200, gen, dtype, device)
     queries = torch.cat([
