@@ -270,7 +270,7 @@ struct Rings {
   Vec3<T> query, origin;
   T h;       // cell edge
   T margin;  // cell_margin(h)
-  T inverse_h;  // 1 / h (row_cells)
+  T inverse_h;  // 1 / h (row_cell)
   int32_t dim[3], cell[3], offset;
 
   TV_HD Rings(const GridView<T>& grid, int64_t batch, Vec3<T> q)
