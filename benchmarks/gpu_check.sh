@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|sweep|timeline|profile|sanitize|ncu|ncusource|envab|ncuknn]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|breakdown|sweep|timeline|profile|sanitize|ncu|ncusource|envab|ncuknn]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -14,8 +14,16 @@ export CXX=/usr/bin/g++ CC=/usr/bin/gcc
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 echo "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}" | tee -a "$OUT/gpu.txt"
 start=$(date +%s)
-python3 -m pip install --no-build-isolation --no-deps --no-index -e . >"$OUT/build.log" 2>&1 || { tail -60 "$OUT/build.log"; exit 1; }
+# Verbose, each line stamped with the second it arrived: ninja prints a
+# compile's command when it finishes, so compile_times.txt lists when each
+# object was done.
+python3 -m pip install -v --no-build-isolation --no-deps --no-index -e . 2>&1 \
+  | while IFS= read -r line; do printf '%(%s)T %s\n' -1 "$line"; done >"$OUT/build.log"
+[ "${PIPESTATUS[0]}" = 0 ] || { tail -60 "$OUT/build.log"; exit 1; }
 echo "build: $(( $(date +%s) - start )) s"
+grep -E '^[0-9]+ \[[0-9]+/[0-9]+\]' "$OUT/build.log" \
+  | sed -E "s/^([0-9]+) (\[[0-9]+\/[0-9]+\]).* -c ([^ ]+).*/\1 \2 \3/" \
+  | awk -v start="$start" '{printf "%4d s  %s %s\n", $1 - start, $2, $3}' | tee "$OUT/compile_times.txt"
 status=0
 for step in "${@:-smoke}"; do
   case "$step" in
@@ -110,6 +118,9 @@ p = torch.load('/tmp/blue_1m.pt').cuda()
 torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=24, on_failure='flag'); torch.cuda.synchronize()
 " 2>&1 | grep -v '^==PROF==' | grep -E "Duration|Registers|Achieved Occupancy|Theoretical Occupancy|Block Limit|Issued Warp|Eligible|Executed Ipc A|Avg. Active Threads|Executed Instructions|L1/TEX Hit|L2 Hit|Dynamic Shared|Stall" | tee -a "$OUT/ncuknn.log"
       done ;;
+    breakdown)  # one Lloyd step's wall time in nested parts, unprofiled (BREAKDOWN_SIZES)
+      python3 benchmarks/lloyd_breakdown.py --sizes ${BREAKDOWN_SIZES:-1M} 2>&1 \
+        | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/breakdown.log" ;;
     sweep) python3 benchmarks/sweep_lloyd_k.py --device cuda --sizes 1M --repeats 20 --timeline 2>&1 | grep -v USDT | tee "$OUT/sweep.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,
                # the op's default k; TIMELINE_SIZES)

@@ -2,7 +2,11 @@
 #include <torch/library.h>
 
 #include "../ops/voronoi.h"
+#include "clip_tiers.cuh"
 #include "exec.cuh"
+
+// Compiled in clip_*.cu.
+TORCHVOR_CLIP_CHUNK_TIERS(extern);
 
 namespace torchvor {
 namespace cuda {

@@ -508,12 +508,20 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                         /*row_by_query=*/false, Exec::kColumnMajorNeighbors, no_distances, neighbors);
     const Grid* vertex_balls = pass.vertex_balls ? &grid : nullptr;
+    // Float32 points are clipped in float32 or float64; float64 points only
+    // in float64 (`if constexpr`: no float32 cells of float64 points are
+    // compiled, which nothing would run).
+    const auto clip_in_float64 = [&] {
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
+                                          neighbor_spread, out);
+    };
     if (pass.precision == Precision::kDoubleDouble) {
       clip_chunk_double_double<io_t>(points, box, batch, part, neighbors,
                                      Exec::kColumnMajorNeighbors, vertex_balls, out);
-    } else if (pass.precision == Precision::kFloat64 || std::is_same<io_t, double>::value) {
-      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
-                                          neighbor_spread, out);
+    } else if constexpr (std::is_same<io_t, double>::value) {
+      clip_in_float64();
+    } else if (pass.precision == Precision::kFloat64) {
+      clip_in_float64();
     } else {
       clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
                                          neighbor_spread, out);

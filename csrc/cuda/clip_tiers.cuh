@@ -1,0 +1,25 @@
+// The CUDA clip kernels (ops::clip_chunk_tier and all it launches) are
+// compiled in translation units of their own, one a pair of point and cell
+// precisions (clip_float.cu, clip_float_in_double.cu, clip_double.cu), so
+// that the build compiles them in parallel with each other and with the
+// rest of voronoi.cu; voronoi.cu declares them extern. They were most of the
+// one voronoi.cu's compile time, and the GPU build is on the critical path of
+// every device check (benchmarks/gpu_check.sh).
+#pragma once
+
+#include "../ops/voronoi.h"
+#include "exec.cuh"
+
+// TORCHVOR_CLIP_CHUNK_TIER(extern, io_t, T) declares the instantiation for
+// points of io_t clipped in T; TORCHVOR_CLIP_CHUNK_TIER(, io_t, T) defines it.
+#define TORCHVOR_CLIP_CHUNK_TIER(EXTERN, io_t, T)                                                            \
+  EXTERN template void torchvor::ops::clip_chunk_tier<torchvor::cuda::CudaExec, io_t, T>(                   \
+      const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,              \
+      const at::Tensor& cells, const at::Tensor& neighbors, int tier, const torchvor::ops::Grid* vertex_balls, \
+      c10::optional<double> neighbor_spread, torchvor::ops::PositionOutputs& out)
+
+// Every pair that ops::run_pass clips in on the GPU.
+#define TORCHVOR_CLIP_CHUNK_TIERS(EXTERN)       \
+  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, float, float); \
+  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, float, double); \
+  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, double, double)
