@@ -1014,6 +1014,31 @@ def test_small_k_recovery(device, dtype, gen, cells_impl, vertex_balls):
     assert torch.equal(cells.status, ref.status)
 
 
+@pytest.mark.parametrize("capacity", ["0", "16", "default"])
+def test_speculative_retry_changes_no_cell(monkeypatch, device, dtype, gen, cells_impl, capacity):
+    """The first retry runs before the host reads how many cells failed, on
+    the device's list of them (ops::speculative_retry), if they fit its
+    capacity (TORCHVOR_SPECULATIVE_CELLS: 16384 by default, 0 never). When
+    the first pass's cells ask only for more neighbours, as here (k=10, no
+    cell near 32 planes), that is the retry the host would have run: the
+    outputs are bitwise those without it, whether it ran (the default: every
+    failed cell fits) or ran no cell at all (they overflow 16)."""
+    points = rand(3000, gen, dtype, device)
+    k = 10
+    monkeypatch.setenv("TORCHVOR_SPECULATIVE_CELLS", "0")
+    plain = run(points, UNIT, k=k)
+    failed_first = int((plain.neighbors > k).sum())  # the cells that needed more than the first pass had
+    assert 16 < failed_first <= 16384
+    if capacity == "default":
+        monkeypatch.delenv("TORCHVOR_SPECULATIVE_CELLS")
+    else:
+        monkeypatch.setenv("TORCHVOR_SPECULATIVE_CELLS", capacity)
+    cells = run(points, UNIT, k=k)
+    for name, got, expected in zip(VORONOI_FIELDS, cells, plain):
+        assert torch.equal(got, expected), name
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+
+
 def test_clusters_with_voids(monkeypatch, device, dtype, seed, gen):
     """Dense clusters with empty space between them: the cells at a cluster's
     edge reach far into the void, and the radius of security would ask for

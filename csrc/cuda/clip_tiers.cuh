@@ -1,8 +1,9 @@
-// The CUDA clip kernels (ops::clip_chunk_tier and all it launches) are
-// compiled in translation units of their own, one a pair of point and cell
-// precisions (clip_float.cu, clip_float_in_double.cu, clip_double.cu), so
-// that the build compiles them in parallel with each other and with the
-// rest of voronoi.cu; voronoi.cu declares them extern. They were most of the
+// The CUDA clip kernels (ops::clip_chunk_tier, the speculative pass's
+// ops::clip_chunk_up_to_device_count, and all they launch) are compiled in
+// translation units of their own, one a pair of point and cell precisions
+// (clip_float.cu, clip_float_in_double.cu, clip_double.cu), so that the
+// build compiles them in parallel with each other and with the rest of
+// voronoi.cu; voronoi.cu declares them extern. They were most of the
 // one voronoi.cu's compile time, and the GPU build is on the critical path of
 // every device check (benchmarks/gpu_check.sh).
 #pragma once
@@ -18,8 +19,17 @@
       const at::Tensor& cells, const at::Tensor& neighbors, int tier, const torchvor::ops::Grid* vertex_balls, \
       c10::optional<double> neighbor_spread, torchvor::ops::PositionOutputs& out)
 
-// Every pair that ops::run_pass clips in on the GPU.
-#define TORCHVOR_CLIP_CHUNK_TIERS(EXTERN)       \
-  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, float, float); \
-  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, float, double); \
-  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, double, double)
+// The speculative retry pass's clip (ops::run_speculative_pass) for points of io_t.
+#define TORCHVOR_CLIP_CHUNK_UP_TO_DEVICE_COUNT(EXTERN, io_t)                                            \
+  EXTERN template void torchvor::ops::clip_chunk_up_to_device_count<torchvor::cuda::CudaExec, io_t>(     \
+      const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,          \
+      const at::Tensor& cells, const at::Tensor& neighbors, c10::optional<double> neighbor_spread,      \
+      const torchvor::core::DeviceCount& live, torchvor::ops::PositionOutputs& out)
+
+// Every clip that ops::voronoi_passes runs on the GPU.
+#define TORCHVOR_CLIP_CHUNK_TIERS(EXTERN)                \
+  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, float, float);        \
+  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, float, double);       \
+  TORCHVOR_CLIP_CHUNK_TIER(EXTERN, double, double);      \
+  TORCHVOR_CLIP_CHUNK_UP_TO_DEVICE_COUNT(EXTERN, float); \
+  TORCHVOR_CLIP_CHUNK_UP_TO_DEVICE_COUNT(EXTERN, double)

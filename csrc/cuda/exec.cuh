@@ -11,6 +11,7 @@
 #include <cub/device/device_radix_sort.cuh>
 
 #include "../core/common.h"
+#include "../core/device_count.h"
 #include "../core/lanes.h"
 
 namespace torchvor {
@@ -36,8 +37,11 @@ __device__ inline unsigned long long claim(unsigned long long* next_item, unsign
 
 // A thread per item, a warp claiming 32 consecutive items at a time (item
 // 32 w + lane: a warp's cells read one line per neighbour, as before).
+// Items past core::items_to_run are not claimed (a speculative pass's empty
+// slots).
 template <typename Functor>
-__global__ void for_each_claimed_kernel(int64_t n, unsigned long long* next_item, Functor functor) {
+__global__ void for_each_claimed_kernel(int64_t launched, unsigned long long* next_item, Functor functor) {
+  const int64_t n = core::items_to_run(functor, launched);
   for (;;) {
     const unsigned long long first = claim(next_item, 32u);
     if (first >= static_cast<unsigned long long>(n)) return;
@@ -52,8 +56,10 @@ __global__ void for_each_claimed_kernel(int64_t n, unsigned long long* next_item
 // item's writes (its start), which the shuffle in claim() does not
 // (compute-sanitizer racecheck reported them).
 template <typename Arrays, typename Functor>
-__global__ void for_each_cooperative_claimed_kernel(int64_t n, unsigned long long* next_item, Functor functor) {
+__global__ void for_each_cooperative_claimed_kernel(int64_t launched, unsigned long long* next_item,
+                                                    Functor functor) {
   extern __shared__ __align__(16) unsigned char shared_bytes[];
+  const int64_t n = core::items_to_run(functor, launched);
   Arrays& arrays = reinterpret_cast<Arrays*>(shared_bytes)[threadIdx.x / 32];
   for (;;) {
     const unsigned long long item = claim(next_item, 1u);

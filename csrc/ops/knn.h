@@ -10,6 +10,7 @@
 #include <tuple>
 #include <type_traits>
 
+#include "../core/device_count.h"
 #include "../core/grid_search.h"
 #include "checks.h"
 #include "grid.h"
@@ -89,14 +90,31 @@ struct KnnFunctor {
 // VertexBallsGridMember); this one is 120.
 static_assert(sizeof(KnnFunctor<double, int64_t>) <= 128, "the kNN functor must stay within 128 bytes");
 
+// Launches `launched` (a KnnFunctor, or one wrapped in UpToDeviceCount)
+// over `count` queries: a group of lanes per query or a thread per query
+// (Exec's choice by the count, or TORCHVOR_KNN).
+template <typename Exec, typename Functor, typename Launched>
+void launch_knn(int64_t count, int64_t k, const Launched& launched) {
+  const int64_t cooperative_bytes = Functor::template cooperative_scratch_bytes<typename Exec::Lanes>(k);
+  if (Exec::fits_cooperative_scratch(cooperative_bytes) &&
+      use_cooperative("TORCHVOR_KNN", Exec::cooperative_queries(count))) {
+    Exec::for_each_cooperative_with_scratch(count, cooperative_bytes, launched);
+  } else {
+    Exec::for_each_with_scratch(count, Functor::scratch_bytes(k), launched);
+  }
+}
+
 // Runs the search for `count` queries. `dist2` may be undefined when only
 // indices are wanted. Results are (rows, k) row-major, or (k, rows)
 // column-major when `column_major` (coalesced on GPUs). TORCHVOR_KNN=thread
-// or =cooperative overrides the backend's choice of implementation.
-template <typename Exec, typename T, typename index_t>
+// or =cooperative overrides the backend's choice of implementation. With
+// kUpToDeviceCount, only the queries that `live` says are valid run (the
+// speculative retry pass of voronoi.h; its own kernels).
+template <typename Exec, typename T, typename index_t, bool kUpToDeviceCount = false>
 void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_order,
              const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
-             bool exclude_self, bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index) {
+             bool exclude_self, bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index,
+             const core::DeviceCount& live = {}) {
   using Functor = KnnFunctor<T, index_t>;
   const int64_t rows = index.numel() / k;
   const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
@@ -105,12 +123,10 @@ void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_or
                         index.data_ptr<index_t>(),
                         static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
                         row_stride, column_stride};
-  const int64_t cooperative_bytes = Functor::template cooperative_scratch_bytes<typename Exec::Lanes>(k);
-  if (Exec::fits_cooperative_scratch(cooperative_bytes) &&
-      use_cooperative("TORCHVOR_KNN", Exec::cooperative_queries(count))) {
-    Exec::for_each_cooperative_with_scratch(count, cooperative_bytes, functor);
+  if constexpr (kUpToDeviceCount) {
+    launch_knn<Exec, Functor>(count, k, core::up_to_device_count(functor, live));
   } else {
-    Exec::for_each_with_scratch(count, Functor::scratch_bytes(k), functor);
+    launch_knn<Exec, Functor>(count, k, functor);
   }
 }
 

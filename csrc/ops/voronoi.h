@@ -169,6 +169,9 @@ static_assert(sizeof(ClipFunctor<float, float, 32>) <= 128 && sizeof(ClipFunctor
 // cell, the read of that one word by every warp (set_bits) queued at one
 // L2 slice, and the scan of 10M cells took 115 us (H100) for 50 MB of reads;
 // 26 us now (the first pass's scan reads no cell list: every position).
+// With `live_count`, the pass's list is the speculative retry's (its valid
+// entries counted on the device, core::DeviceCount; num_cells is its
+// capacity).
 struct StatusScanFunctor {
   static constexpr int64_t kItems = 16;
   const int8_t* status;   // (N,) by position
@@ -177,12 +180,14 @@ struct StatusScanFunctor {
   int64_t stride;         // the threads of the scan: threads(num_cells)
   int32_t* failed_cells;  // (num_cells,) the failed ones (not SUCCESS or DUPLICATE), in no set order
   int32_t* words;         // two words, zeroed
+  const int32_t* live_count = nullptr;
 
   static int64_t threads(int64_t num_cells) { return (num_cells + kItems - 1) / kItems; }
 
   TV_HD void operator()(int64_t t) const {
     int32_t seen = 0;
-    for (int64_t i = t; i < num_cells; i += stride) {
+    const int64_t scanned = live_count ? core::DeviceCount{live_count, num_cells}.live() : num_cells;
+    for (int64_t i = t; i < scanned; i += stride) {
       const int32_t cell = cells ? cells[i] : static_cast<int32_t>(i);
       const int8_t code = status[cell];
       seen |= int32_t(1) << (code - core::kNotComputed);
@@ -378,12 +383,15 @@ inline bool compact_triangles() {
 // Clips a chunk of cells. With `vertex_balls` (the grid of `points` by
 // position), cells whose neighbours run out before the radius of security
 // are finished on it (ClipFunctor's kVertexBalls).
-template <typename Exec, typename io_t, typename T, int MAX_PLANES, bool kVertexBalls>
+// With kUpToDeviceCount, only the cells that `live` says are valid run (the
+// speculative retry pass; kernels of their own).
+template <typename Exec, typename io_t, typename T, int MAX_PLANES, bool kVertexBalls,
+          bool kUpToDeviceCount = false>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
                 bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
-                PositionOutputs& out) {
+                PositionOutputs& out, const core::DeviceCount& live = {}) {
   static_assert(!kVertexBalls || MAX_PLANES == kVertexBallPlanes, "vertex-ball passes run at the largest tier");
   constexpr bool kCompactPossible = std::is_same<T, float>::value && MAX_PLANES <= 32;
   // The functor with or without compact triangles (std::true_type or std::false_type).
@@ -399,7 +407,11 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
         rows_by_step,                   out.data<io_t>(),
         out.status.data_ptr<int8_t>()};
     if constexpr (kVertexBalls) clip.grid = vertex_balls->view<io_t>();
-    return clip;
+    if constexpr (kUpToDeviceCount) {
+      return core::up_to_device_count(clip, live);
+    } else {
+      return clip;
+    }
   };
   // One thread per cell (ConvexCell) or a group of lanes per cell
   // (CooperativeCell): the backend chooses by the pass's size, k and the
@@ -449,6 +461,17 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
     case 1: clip_chunk<Exec, io_t, T, 64, false>(points, box, batch, cells, neighbors, column_major, 0, false, nullptr, neighbor_spread, out); break;
     default: clip_chunk<Exec, io_t, T, 160, false>(points, box, batch, cells, neighbors, column_major, 0, false, nullptr, neighbor_spread, out); break;
   }
+}
+
+// The speculative retry pass's clip (voronoi_passes): the first tier, in
+// the points' precision, on the cells of `cells` that `live` says are valid.
+template <typename Exec, typename io_t>
+void clip_chunk_up_to_device_count(const at::Tensor& points, const at::Tensor& box,
+                                   const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                                   const at::Tensor& neighbors, c10::optional<double> neighbor_spread,
+                                   const core::DeviceCount& live, PositionOutputs& out) {
+  clip_chunk<Exec, io_t, io_t, 32, false, true>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors,
+                                                0, false, nullptr, neighbor_spread, out, live);
 }
 
 // The last resort, on the CPU whatever the device (as the paper's fallback):
@@ -671,6 +694,101 @@ void forget_cell_for_tests(int attempt, PositionOutputs& out) {
   out.status.select(0, position).fill_(int(core::kNotComputed));
 }
 
+// What a pass's failed cells ask the next pass to raise.
+struct RetryAsks {
+  bool neighbors;  // some ran out of neighbours before the radius of security
+  bool planes;     // some overflowed their plane or triangle arrays
+  bool precision;  // some were inconsistent or ill-conditioned in this arithmetic
+};
+
+// The settings of the pass after `pass`, raised as `ask` asks (equal to
+// `pass` when nothing is left to raise).
+inline PassSettings escalated(const PassSettings& pass, const RetryAsks& ask, int64_t largest_cloud,
+                              bool is_double) {
+  PassSettings next = pass;
+  // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
+  // (2 CPU cores, 100K white / perturbed / blue: 502 / 396 / 256 ms at 2x,
+  // 488 / 384 / 251 at 1.5x, 496 / 386 / 254 at 1.25x).
+  if (ask.neighbors) {
+    // Up to vertex_balls_k neighbours by the radius of security, then that
+    // many and the grid: whether and how a cell is finished on the grid
+    // depends on the cell alone, not on the passes before.
+    const int64_t most = vertex_balls_k();
+    const int64_t more = std::min(pass.k + std::max<int64_t>(8, pass.k / 2), largest_cloud);
+    if (more <= most || pass.k < most) {
+      next.k = std::min(more, most);
+    } else {
+      next.k = most;
+      next.vertex_balls = true;
+    }
+  }
+  if (ask.planes) next.tier = std::min(pass.tier + 1, 2);
+  if (next.vertex_balls) next.tier = 2;  // kVertexBallPlanes
+  if (ask.precision) {
+    next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
+                                                                         : Precision::kDoubleDouble;
+  }
+  return next;
+}
+
+// The retry that the first pass most likely needs (more neighbours for the
+// cells that ran out: blue noise at the pilot's k, 825 of 10M cells; a
+// Lloyd step at 1M, ~80), launched before the host has read how many cells
+// failed: its kernels take the count from the device (core::DeviceCount).
+// Without it the GPU idled while the words travelled and the host launched the
+// retry, and a second read followed.
+//
+// Its outcome stands for the round's whenever the failed cells fit its
+// capacity; the loop then goes on from its settings. That is also what the
+// loop would have run when the cells asked only for neighbours (the same
+// settings and kernels: a retry of up to 16384 cells runs warp cells and
+// warp kNN, Exec::cooperative_cells); other asks are raised after it. When
+// the cells overflow the capacity, it runs no cell at all and the loop
+// retries as before. So the cells that a pass computes depend on counts,
+// never on the order of the scan's appends.
+struct Speculation {
+  PassSettings pass{0, 0, Precision::kInput};
+  int64_t capacity = 0;  // 0: none
+};
+
+// At most this many cells, or TORCHVOR_SPECULATIVE_CELLS (0: no speculative
+// retry; tests use small ones), and at most the memory budget's worth of
+// neighbours (but at least 1024 cells, as run_pass's chunks).
+inline int64_t speculative_cells() {
+  constexpr int64_t kDefault = 16384;
+  const char* chosen = std::getenv("TORCHVOR_SPECULATIVE_CELLS");
+  return chosen != nullptr ? std::max<int64_t>(0, std::atoll(chosen)) : kDefault;
+}
+
+inline Speculation speculative_retry(const PassSettings& first, int64_t cells, int64_t largest_cloud,
+                                     int64_t memory_budget) {
+  const PassSettings more = escalated(first, RetryAsks{true, false, false}, largest_cloud, false);
+  if (more.vertex_balls || more.k <= first.k) return {};
+  const int64_t by_budget = std::max<int64_t>(1024, memory_budget / (more.k * int64_t(sizeof(int32_t))));
+  return {more, std::min({cells, speculative_cells(), by_budget})};
+}
+
+// The speculative retry pass: kNN and clip of the cells of `cells` that
+// `live` says are valid, with `pass`'s neighbours, at the first tier and in
+// the points' precision (speculative_retry's settings).
+template <typename Exec, typename io_t>
+void run_speculative_pass(const at::Tensor& points, const at::Tensor& box,
+                          const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
+                          const PassSettings& pass, c10::optional<double> neighbor_spread,
+                          const core::DeviceCount& live, PositionOutputs& out) {
+  TORCH_CHECK(pass.tier == 0 && pass.precision == Precision::kInput && !pass.vertex_balls,
+              "torchvor: internal error: a speculative pass beyond the first tier");
+  const int64_t m = cells.size(0);
+  at::Tensor no_distances;
+  at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
+  run_knn<Exec, io_t, int32_t, true>(grid.view<io_t>(), points.data_ptr<io_t>(), /*queries_in_order=*/false,
+                                     batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+                                     cells.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
+                                     /*row_by_query=*/false, Exec::kColumnMajorNeighbors, no_distances, neighbors,
+                                     live);
+  clip_chunk_up_to_device_count<Exec, io_t>(points, box, batch, cells, neighbors, neighbor_spread, live, out);
+}
+
 // What voronoi_forward puts on the device before it reads the bounds (work
 // that needs none of them, which then runs while the host waits).
 struct Prepared {
@@ -718,6 +836,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass, c10::optional<double> neighbor_spread) {
     run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, neighbor_spread, memory_budget, out);
   };
+  const auto run_speculative = [&](const at::Tensor& cells, const PassSettings& pass,
+                                   c10::optional<double> neighbor_spread, const core::DeviceCount& live) {
+    run_speculative_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, neighbor_spread, live, out);
+  };
   // The grid's density follows k (points_per_cell_for). Without k, the pilot
   // runs on the densest grid of that rule (1.5 points a cell, which is blue
   // noise's: k ~ 19) and the grid is rebuilt when the measured k wants cells
@@ -744,21 +866,39 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   at::Tensor last_failed;
   bool unwritten = false;
   const bool is_double = points.scalar_type() == at::kDouble;
+  const auto scan = [&](const at::Tensor& cells, bool all_positions, const at::Tensor& failed_cells,
+                        int32_t* words, const int32_t* live_count) {
+    const int64_t scan_threads = StatusScanFunctor::threads(cells.size(0));
+    Exec::for_each(scan_threads, StatusScanFunctor{out.status.data_ptr<int8_t>(),
+                                                   all_positions ? nullptr : cells.data_ptr<int32_t>(),
+                                                   cells.size(0), scan_threads, failed_cells.data_ptr<int32_t>(),
+                                                   words, live_count});
+  };
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
     run(pending, pass, neighbor_spread);
     forget_cell_for_tests<io_t>(attempt, out);
-    // Which status codes this pass produced and which cells failed, in one
-    // read (one device sync). The failed cells come in no set order (the
-    // scan appends them as it finds them); each cell's result does not
-    // depend on the order of a pass.
+    // Which status codes this pass produced and which cells failed (words 0
+    // and 1), in one read (one device sync). The failed cells come in no set
+    // order (the scan appends them as it finds them); each cell's result
+    // does not depend on the order of a pass.
     const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
-    const at::Tensor words = at::zeros({2}, pending.options());
-    const int64_t scan_threads = StatusScanFunctor::threads(pending.size(0));
-    Exec::for_each(scan_threads,
-                   StatusScanFunctor{out.status.data_ptr<int8_t>(),
-                                     pending.is_same(positions) ? nullptr : pending.data_ptr<int32_t>(),
-                                     pending.size(0), scan_threads, failed_cells.data_ptr<int32_t>(),
-                                     words.data_ptr<int32_t>()});
+    const at::Tensor words = at::zeros({4}, pending.options());
+    scan(pending, pending.is_same(positions), failed_cells, words.data_ptr<int32_t>(), nullptr);
+    // After the first pass, the retry it most likely needs runs before the
+    // host reads the words: on the failed cells with more neighbours, if
+    // they fit its capacity (core::DeviceCount), its own outcome in words 2
+    // and 3 (the same read).
+    const Speculation speculation =
+        attempt == 0 ? speculative_retry(pass, pending.size(0), largest_cloud, memory_budget) : Speculation{};
+    at::Tensor speculative_failed;
+    if (speculation.capacity > 0) {
+      const at::Tensor cells = failed_cells.slice(0, 0, speculation.capacity);
+      const core::DeviceCount live{words.data_ptr<int32_t>() + 1, speculation.capacity};
+      run_speculative(cells, speculation.pass, neighbor_spread, live);
+      forget_cell_for_tests<io_t>(attempt, out);
+      speculative_failed = at::empty({speculation.capacity}, pending.options());
+      scan(cells, false, speculative_failed, words.data_ptr<int32_t>() + 2, live.count);
+    }
     const typename Exec::HostRead reading(words);
     if (attempt == 0 && !grid_order) {
       // The inverse order depends on the grid alone: the device computes it
@@ -768,40 +908,27 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
       out.position_of_row = invert_order<Exec>(out.row_of_position);
     }
     const at::Tensor read = reading.wait();
-    const int32_t seen_bits = read.data_ptr<int32_t>()[0];
-    const int64_t failed = read.data_ptr<int32_t>()[1];
+    int32_t seen_bits = read.data_ptr<int32_t>()[0];
+    int64_t failed = read.data_ptr<int32_t>()[1];
+    at::Tensor failed_list = failed_cells;
+    if (speculation.capacity > 0 && failed > 0 && failed <= speculation.capacity) {
+      // The speculative pass recomputed every failed cell: its outcome
+      // stands for this round's.
+      pass = speculation.pass;
+      seen_bits = read.data_ptr<int32_t>()[2];
+      failed = read.data_ptr<int32_t>()[3];
+      failed_list = speculative_failed;
+    }
     const auto seen = [&](core::CellStatus code) { return ((seen_bits >> (code - core::kNotComputed)) & 1) != 0; };
-    const bool ask[3] = {seen(core::kSecurityRadiusNotReached),
-                         seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
-                         seen(core::kBoundaryError) || seen(core::kIllConditioned)};
-    last_failed = failed_cells.slice(0, 0, failed);
+    const RetryAsks ask{seen(core::kSecurityRadiusNotReached),
+                        seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
+                        seen(core::kBoundaryError) || seen(core::kIllConditioned)};
+    last_failed = failed_list.slice(0, 0, failed);
     unwritten = seen(core::kNotComputed);
-    if (!(ask[0] || ask[1] || ask[2] || unwritten)) break;
+    if (!(ask.neighbors || ask.planes || ask.precision || unwritten)) break;
     pending = last_failed;
     // Escalate what the failures ask for; stop when nothing is left to raise.
-    PassSettings next = pass;
-    // 1.5x, not 2x: the failed cells mostly need only a few more neighbours
-    // (2 CPU cores, 100K white / perturbed / blue: 502 / 396 / 256 ms at 2x,
-    // 488 / 384 / 251 at 1.5x, 496 / 386 / 254 at 1.25x).
-    if (ask[0]) {
-      // Up to vertex_balls_k neighbours by the radius of security, then that
-      // many and the grid: whether and how a cell is finished on the grid
-      // depends on the cell alone, not on the passes before.
-      const int64_t most = vertex_balls_k();
-      const int64_t more = std::min(pass.k + std::max<int64_t>(8, pass.k / 2), largest_cloud);
-      if (more <= most || pass.k < most) {
-        next.k = std::min(more, most);
-      } else {
-        next.k = most;
-        next.vertex_balls = true;
-      }
-    }
-    if (ask[1]) next.tier = std::min(pass.tier + 1, 2);
-    if (next.vertex_balls) next.tier = 2;  // kVertexBallPlanes
-    if (ask[2]) {
-      next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
-                                                                           : Precision::kDoubleDouble;
-    }
+    const PassSettings next = escalated(pass, ask, largest_cloud, is_double);
     if (next == pass) break;  // nothing left to raise
     pass = next;
   }
