@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "../core/common.h"
+#include "../core/device_count.h"
 #include "../core/lanes.h"
 #include "isa.h"
 #include "large_buffers.h"
@@ -17,6 +18,11 @@
 namespace torchvor {
 namespace cpu {
 
+// The loops over cells and queries run only the items that
+// core::items_to_run says are valid (a speculative pass's list: its count is
+// in host memory here), so that at::parallel_for splits those evenly between
+// the threads; over all launched slots, one thread got every valid one
+// (100K white noise, 2 cores: 1012 against 951 ms).
 struct CpuExec {
   using Lanes = core::SingleLane;  // the lanes of one cooperative item
   // A cell reads its neighbour list in one cache line or two: row-major.
@@ -78,7 +84,8 @@ struct CpuExec {
   // (isa.h), where a * b + c may round once, as on the GPU. Not for code that
   // relies on separately rounded products (double-double's Dekker split).
   template <typename Functor>
-  static void for_each_cell(int64_t n, int64_t /*k*/, const Functor& functor) {
+  static void for_each_cell(int64_t launched, int64_t /*k*/, const Functor& functor) {
+    const int64_t n = core::items_to_run(functor, launched);
     const Isa isa = cpu_isa();
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       run_range(isa, begin, end, functor);
@@ -88,7 +95,8 @@ struct CpuExec {
   // functor(i, lanes, arrays) with a group of one lane (core::SingleLane) and
   // one Arrays per thread, reused from item to item.
   template <typename Arrays, typename Functor>
-  static void for_each_cooperative(int64_t n, const Functor& functor) {
+  static void for_each_cooperative(int64_t launched, const Functor& functor) {
+    const int64_t n = core::items_to_run(functor, launched);
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       const auto arrays = std::make_unique<Arrays>();
       for (int64_t i = begin; i < end; ++i) functor(i, core::SingleLane{}, *arrays);
@@ -97,8 +105,8 @@ struct CpuExec {
 
   // functor(i, lanes, arena): for_each_with_scratch with a group of one lane.
   template <typename Functor>
-  static void for_each_cooperative_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
-    for_each_with_scratch(n, bytes, [&](int64_t i, core::ScratchArena arena) {
+  static void for_each_cooperative_with_scratch(int64_t launched, int64_t bytes, const Functor& functor) {
+    for_each_with_scratch(core::items_to_run(functor, launched), bytes, [&](int64_t i, core::ScratchArena arena) {
       functor(i, core::SingleLane{}, arena);
     });
   }
@@ -108,7 +116,8 @@ struct CpuExec {
   // an AVX2 copy of it measured no faster: 100K points, k=64, 165-170 ms
   // either way.)
   template <typename Functor>
-  static void for_each_with_scratch(int64_t n, int64_t bytes, const Functor& functor) {
+  static void for_each_with_scratch(int64_t launched, int64_t bytes, const Functor& functor) {
+    const int64_t n = core::items_to_run(functor, launched);
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       std::vector<std::max_align_t> scratch((bytes + sizeof(std::max_align_t) - 1) /
                                             sizeof(std::max_align_t));
