@@ -29,19 +29,11 @@ from torch.profiler import ProfilerActivity, profile
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
 import torchvor  # noqa: E402
+from ab_env import wall_ms  # noqa: E402  (CUDA events around the call)
 from torchvor.lloyd import _move_to_centroids, _per_point_bounds  # noqa: E402
 from torchvor.ops import _voronoi_in_grid_order, as_box  # noqa: E402
 
 SIZES = {"100K": 100_000, "1M": 1_000_000, "10M": 10_000_000}
-
-
-def wall_ms(fn) -> float:
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    start.record()
-    fn()
-    end.record()
-    end.synchronize()
-    return start.elapsed_time(end)
 
 
 def gpu_busy_ms(fn) -> float:
