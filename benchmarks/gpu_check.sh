@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, run the tests (CPU and CUDA),
 # the CUDA smoke check and the benchmarks; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|breakdown|sweep|timeline|profile|sanitize|ncu|ncusource|envab|ncuknn]...
+#   usage: bash benchmarks/gpu_check.sh [smoke|tests|cudatests|ab|lanes|crossk|kinds|bluek|density|residency|bench|hard|lloyd10m|breakdown|build|sweep|timeline|profile|sanitize|ncu|ncusource|envab|ncuknn]...
 set -u -o pipefail
 OUT=${OUT:-/tmp/torchvor_gpu}
 mkdir -p "$OUT"
@@ -153,6 +153,8 @@ torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(
 " 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
         done
       done ;;
+    build) ;;  # the build alone
+    *) echo "gpu_check.sh: unknown step '$step'" >&2; status=1 ;;
   esac
 done
 exit $status
