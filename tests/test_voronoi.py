@@ -1383,14 +1383,16 @@ def test_compile_voronoi(device, dtype, gen):
 def assert_cells_unchanged(cells, default_cells, dtype):
     """The same statuses and neighbour counts; the integrals bit for bit in
     float64, up to a summation order in float32 (equally far neighbours
-    clipped in another order)."""
+    clipped in another order). The second moment's terms cancel the most:
+    over 60 such pairs of 5000 cells (pilot quantiles 0.5 and 1 against the
+    default) its largest relative difference was 1.08e-5, the volume's 2.8e-6."""
     for name in ("status", "neighbors"):
         assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
-    for name in ("volume", "centroid", "second_moment"):
+    for name, rtol in (("volume", 1e-5), ("centroid", 1e-5), ("second_moment", 5e-5)):
         if dtype == torch.float64:
             assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
         else:
-            torch.testing.assert_close(getattr(cells, name), getattr(default_cells, name), rtol=1e-5, atol=0)
+            torch.testing.assert_close(getattr(cells, name), getattr(default_cells, name), rtol=rtol, atol=0)
 
 
 @pytest.mark.parametrize("scale", ["0.3", "3"])
