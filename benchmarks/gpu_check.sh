@@ -149,7 +149,8 @@ torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.sync
 import torch, torchvor, torchvor.samples
 p = torchvor.samples.white_noise(100000, device='cuda')
 torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
-torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item())
+r = torchvor.lloyd(p, ([0,0,0],[1,1,1]), iters=2)  # lloyd_step: its first k (64) leaves cells to retry
+torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(), 'lloyd', r.sum().item())
 " 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
         done
       done ;;

@@ -6,9 +6,10 @@ parts of one Lloyd step on relaxed points in interleaved rounds, each by CUDA
 events around it, and reports the medians and their differences:
 
 - ``lloyd``: ``torchvor.lloyd(points, box, iters=1, k=K)``, the benchmarks' step;
-- ``body``: one iteration's body (the grid-order cells, the move and its one read),
-  i.e. without lloyd()'s setup and the final return to the caller's order;
-- ``cells``: the grid-order op alone (``_voronoi_in_grid_order``);
+- ``step``: one iteration's op (``torchvor::lloyd_step``: the grid-order cells, the
+  move and its measures, one read), i.e. without lloyd()'s setup and the final
+  return to the caller's order;
+- ``cells``: the grid-order voronoi op alone (``_voronoi_in_grid_order``);
 - ``late``: the median ``seconds`` of iterations 2.. of one ``lloyd(iters=8)`` run;
 - ``launches``: 40 small ATen ops from Python and one read, per op (the host's rate);
 - ``busy``: the GPU's activity (kernels, copies, memsets) in one profiled ``lloyd``
@@ -30,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
 import torchvor  # noqa: E402
 from ab_env import wall_ms  # noqa: E402  (CUDA events around the call)
-from torchvor.lloyd import _move_to_centroids, _per_point_bounds  # noqa: E402
+from torchvor.lloyd import HISTOGRAM_BINS, QUANTILE_SAMPLE  # noqa: E402
 from torchvor.ops import _voronoi_in_grid_order, as_box  # noqa: E402
 
 SIZES = {"100K": 100_000, "1M": 1_000_000, "10M": 10_000_000}
@@ -57,13 +58,11 @@ def main() -> None:
         box = as_box(points, common.UNIT_BOX)
         _, order = _voronoi_in_grid_order(points, box, None, args.k)
         in_grid_order = points.index_select(0, order)  # as in a run's later iterations
-        lower, upper = _per_point_bounds(box, None)
-        diagonal = (upper - lower).to(torch.float64).norm(dim=1)
         small = torch.zeros(16, device="cuda")
+        stride = max(1, SIZES[tag] // QUANTILE_SAMPLE)  # as torchvor.lloyd samples
 
-        def body():
-            cells, cell_order = _voronoi_in_grid_order(in_grid_order, box, None, args.k)
-            return _move_to_centroids(in_grid_order, cell_order, cells, lower, upper, diagonal)
+        def step():
+            return torch.ops.torchvor.lloyd_step.default(in_grid_order, box, None, args.k, stride, HISTOGRAM_BINS)
 
         def launches():
             for _ in range(40):
@@ -72,7 +71,7 @@ def main() -> None:
 
         parts = {
             "lloyd": lambda: torchvor.lloyd(in_grid_order, box, iters=1, k=args.k),
-            "body": body,
+            "step": step,
             "cells": lambda: _voronoi_in_grid_order(in_grid_order, box, None, args.k),
             "launches": launches,
         }
@@ -92,10 +91,10 @@ def main() -> None:
         print(f"\n### {tag} blue noise, k={args.k}, {args.rounds} interleaved rounds (medians, ms)")
         print("| part | ms |")
         print("|---|---|")
-        for name in ("lloyd", "body", "cells", "late"):
+        for name in ("lloyd", "step", "cells", "late"):
             print(f"| {name} | {median[name]:.3f} |")
-        print(f"| lloyd - body (setup, return to the caller's order) | {median['lloyd'] - median['body']:.3f} |")
-        print(f"| body - cells (move, sample, sums, one read) | {median['body'] - median['cells']:.3f} |")
+        print(f"| lloyd - step (setup, return to the caller's order) | {median['lloyd'] - median['step']:.3f} |")
+        print(f"| step - cells (move, measures, histogram, their read) | {median['step'] - median['cells']:.3f} |")
         print(f"| GPU busy in one profiled lloyd call | {busy:.3f} |")
         print(f"| lloyd - busy (GPU idle) | {median['lloyd'] - busy:.3f} |")
         print(f"| one small ATen op from Python (40 and a read) | {1e3 * median['launches']:.1f} us |")

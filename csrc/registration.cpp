@@ -24,14 +24,21 @@ TORCH_LIBRARY(torchvor, m) {
       "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors, Tensor order)");
-  // One Lloyd move of points (N, 3) whose cells came in grid order: row i of
-  // centroid (N, 3) and status (N,) int8 is the cell of points[order[i]]
-  // (order (N,) int64). moved (N, 3): the centroid clamped to [lower, upper]
-  // ((1, 3) or (N, 3) by row), or the point where the cell failed;
-  // displacement2 (N,): |moved - point|^2.
+  // One Lloyd iteration: the cells of points (N, 3) as voronoi_cells_grid_order
+  // computes them with first-pass k (volume, centroid, second_moment, status,
+  // neighbors by grid position, and order (N,) int64: row i is the cell of
+  // points[order[i]]), and moved (N, 3), by grid position: each point at its
+  // cell's centroid clamped into its box, or where it was if its cell failed.
+  // measures (2,) float64 on the CPU: the sum of the second moments (the CVT
+  // energy before the move; NaN if a cell failed) and the largest squared
+  // displacement over the square of its box's diagonal. histogram
+  // (histogram_bins,) int32 on the CPU: bin c counts the rows 0, s, 2s, ...
+  // (s = sample_stride) whose cells needed c neighbours (the last bin also
+  // histogram_bins; more are left out).
   m.def(
-      "lloyd_move(Tensor points, Tensor order, Tensor centroid, Tensor status, Tensor lower, Tensor upper) "
-      "-> (Tensor moved, Tensor displacement2)");
+      "lloyd_step(Tensor points, Tensor box, Tensor? batch, int k, int sample_stride, int histogram_bins, "
+      "int memory_budget=1073741824) -> (Tensor moved, Tensor volume, Tensor centroid, Tensor second_moment, "
+      "Tensor status, Tensor neighbors, Tensor order, Tensor measures, Tensor histogram)");
 }
 
 // `import torchvor._C` loads this library, which runs the registrations above.

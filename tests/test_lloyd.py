@@ -69,27 +69,21 @@ def test_neighbors_needed_from_a_strided_sample_beyond_the_sample_size(device, m
 def test_failed_cell_keeps_its_point(device, monkeypatch):
     """A cell that cannot be computed (NaN outputs and a failure status, as
     torchvor.voronoi leaves it) warns, keeps its point, and makes the energy NaN;
-    every other point moves to its centroid."""
-    lloyd_module = sys.modules["torchvor.lloyd"]
-    real_voronoi = lloyd_module._voronoi_in_grid_order
-
-    def voronoi_with_a_failure(*args, **kwargs):
-        cells, order = real_voronoi(*args, **kwargs)
-        row = int((order == 7).nonzero())  # the cell of the caller's point 7
-        status, volume, centroid, second_moment = (t.clone() for t in (
-            cells.status, cells.volume, cells.centroid, cells.second_moment))
-        status[row] = torchvor.CellStatus.BOUNDARY_ERROR
-        volume[row], centroid[row], second_moment[row] = float("nan"), float("nan"), float("nan")
-        return cells._replace(status=status, volume=volume, centroid=centroid, second_moment=second_moment), order
-
-    points = samples.white_noise(400, seed=5, dtype=torch.float64, device=device)
-    cells = torchvor.voronoi(points, UNIT_BOX)
-    monkeypatch.setattr(lloyd_module, "_voronoi_in_grid_order", voronoi_with_a_failure)
+    every other point moves to its centroid. The op's test hook drops one
+    cell's first-pass result, so lloyd_step also launches its tail again
+    after that cell's outputs are poisoned. On a jittered lattice every cell
+    succeeds in the first pass, so no retry recomputes the dropped one."""
+    points = samples.jittered_grid(125, amplitude=0.1, seed=5, dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points, UNIT_BOX, k=26)
+    _, order = _voronoi_in_grid_order(points, unit_box_tensor(device=device), None, 26)
+    position = 37
+    row = int(order[position])  # the caller's point whose cell the hook drops
+    monkeypatch.setenv("TORCHVOR_TEST_UNWRITTEN_CELL", str(position))
     with pytest.warns(RuntimeWarning, match="1 cell"):
-        moved, history = lloyd(points, UNIT_BOX, iters=1, return_history=True)
+        moved, history = lloyd(points, UNIT_BOX, iters=1, k=26, return_history=True)
     assert history[0].failed == 1 and math.isnan(history[0].energy)
-    assert torch.equal(moved[7], points[7])
-    others = torch.arange(400, device=device) != 7
+    assert torch.equal(moved[row], points[row])
+    others = torch.arange(125, device=device) != row
     torch.testing.assert_close(moved[others], cells.centroid[others], rtol=0, atol=1e-15)
     expected = (cells.centroid[others] - points[others]).norm(dim=1).max().item() / 3 ** 0.5
     assert history[0].max_displacement == pytest.approx(expected, rel=1e-12, abs=0)
@@ -205,74 +199,112 @@ def test_callback_sees_the_callers_order(device):
     assert torch.equal(relaxed, seen[-1][0])
 
 
-# ---- lloyd_move (one move of points whose cells came in grid order) ------------------------
+# ---- lloyd_step (one iteration in one op: the cells in grid order, the move, its measures) ----
 
 
-def lloyd_move_inputs(device, dtype, n=50, per_row_bounds=False, seed=0):
-    gen = torch.Generator().manual_seed(seed)
-    points = torch.rand(n, 3, generator=gen, dtype=torch.float64).to(dtype).to(device)
-    order = torch.randperm(n, generator=gen).to(device)
-    centroid = (torch.rand(n, 3, generator=gen, dtype=torch.float64) * 1.2 - 0.1).to(dtype).to(device)
-    status = torch.zeros(n, dtype=torch.int8)
-    status[3], status[4], status[5] = (int(torchvor.CellStatus.BOUNDARY_ERROR), int(torchvor.CellStatus.DUPLICATE),
-                                       int(torchvor.CellStatus.NOT_COMPUTED))
-    centroid[3] = centroid[5] = float("nan")
-    bounds = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], dtype=dtype)
-    lower, upper = bounds[:1].to(device), bounds[1:].to(device)
-    if per_row_bounds:
-        lower = (lower - torch.rand(n, 1, generator=gen).to(dtype).to(device) * 0.05).contiguous()
-        upper = upper.expand(n, 3).contiguous()
-    return points, order, centroid, status.to(device), lower, upper
+def expected_step(points, box, batch, k, stride, bins):
+    """lloyd_step's outputs from the grid-order voronoi op and tensor ops (an
+    oracle for the move and the measures; the cells are the voronoi op's)."""
+    cells, order = _voronoi_in_grid_order(points, box, batch, k)
+    element = batch.index_select(0, order) if batch is not None else torch.zeros_like(order)
+    lower, upper = box[element, 0], box[element, 1]
+    point = points.index_select(0, order)
+    stays = ((cells.status != 0) & (cells.status != int(torchvor.CellStatus.DUPLICATE))).unsqueeze(1)
+    moved = torch.where(stays, point, cells.centroid.clamp(lower, upper))
+    displacement2 = (moved.double() - point.double()).square().sum(1) / (upper.double() - lower.double()).square().sum(1)
+    measures = torch.tensor([cells.second_moment.double().sum().item(),
+                             displacement2.max().item() if len(points) else 0.0], dtype=torch.float64)
+    histogram = torch.histc(cells.neighbors[::stride].double().cpu(), bins=bins, min=0, max=bins).int()
+    return moved, cells, order, measures, histogram
 
 
-@pytest.mark.parametrize("per_row_bounds", [False, True])
+def two_clouds(device, dtype):
+    first = samples.white_noise(300, seed=21, dtype=dtype, device=device)
+    second = samples.white_noise(200, seed=22, dtype=dtype, device=device) * 3 + 5
+    boxes = torch.tensor([[[0.0] * 3, [1.0] * 3], [[5.0] * 3, [8.0] * 3]], dtype=dtype, device=device)
+    batch = torch.cat([torch.zeros(300, dtype=torch.int64), torch.ones(200, dtype=torch.int64)]).to(device)
+    return torch.cat([first, second]), boxes, batch
+
+
+@pytest.mark.parametrize("speculative_cells", [None, "0", "16"])
+@pytest.mark.parametrize("batched", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_lloyd_move_against_tensor_ops(device, dtype, per_row_bounds):
-    """Row i: the centroid clamped into the box, or (failed cell: not SUCCESS
-    or DUPLICATE) the point order[i] it belongs to; and |moved - point|^2."""
-    points, order, centroid, status, lower, upper = lloyd_move_inputs(device, dtype, per_row_bounds=per_row_bounds)
-    moved, displacement2 = torch.ops.torchvor.lloyd_move(points, order, centroid, status, lower, upper)
-    point = points[order]
-    stays = ((status != 0) & (status != int(torchvor.CellStatus.DUPLICATE))).unsqueeze(1)
-    expected = torch.where(stays, point, centroid.clamp(lower, upper))
-    assert torch.equal(moved, expected)
-    torch.testing.assert_close(displacement2, (expected - point).square().sum(1), rtol=1e-6, atol=0)
-    assert bool((displacement2[stays.squeeze(1)] == 0).all())
+def test_lloyd_step_against_the_voronoi_op_and_tensor_ops(device, dtype, batched, speculative_cells, monkeypatch):
+    """The moved points (each centroid clamped into its box, or the point where
+    its cell failed), the energy, the largest squared displacement over the
+    squared box diagonal and the strided histogram of the neighbours needed,
+    with the voronoi op's cells. k=8 on white noise fails many cells in the
+    first pass: with the speculative retry on (default), off (0) and
+    overflowing (16), the op launches its tail before the first status read
+    and again after the later passes, whose results must be the final ones."""
+    if speculative_cells is not None:
+        monkeypatch.setenv("TORCHVOR_SPECULATIVE_CELLS", speculative_cells)
+    if batched:
+        points, box, batch = two_clouds(device, dtype)
+    else:
+        points, box, batch = samples.white_noise(600, seed=20, dtype=dtype, device=device), None, None
+        box = unit_box_tensor(dtype, device)
+    stride, bins = 3, 40
+    moved, *outputs, order, measures, histogram = torch.ops.torchvor.lloyd_step(points, box, batch, 8, stride, bins)
+    expected_moved, cells, expected_order, expected_measures, expected_histogram = expected_step(
+        points, box, batch, 8, stride, bins)
+    assert torch.equal(order, expected_order)
+    for name, value in zip(VoronoiCellsFields, outputs):
+        assert torch.equal(value, getattr(cells, name)), name
+    assert torch.equal(moved, expected_moved)
+    assert measures.device.type == "cpu" and measures.dtype == torch.float64 and measures.shape == (2,)
+    torch.testing.assert_close(measures, expected_measures, rtol=1e-12, atol=0)
+    assert histogram.device.type == "cpu" and histogram.dtype == torch.int32
+    assert torch.equal(histogram, expected_histogram)
 
 
-def test_lloyd_move_opcheck(device):
-    for dtype in (torch.float32, torch.float64):
-        for per_row_bounds in (False, True):
-            args = lloyd_move_inputs(device, dtype, n=20, per_row_bounds=per_row_bounds)
-            torch.library.opcheck(torch.ops.torchvor.lloyd_move.default, args)
+VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors")
+
+
+def test_lloyd_step_histogram_bins_edges(device):
+    """Counts equal to histogram_bins go into the last bin, larger ones are left
+    out (as torch.histc over [0, bins])."""
+    points = samples.white_noise(400, seed=23, dtype=torch.float64, device=device)
+    box = unit_box_tensor(device=device)
+    cells, _ = _voronoi_in_grid_order(points, box, None, 16)
+    needed = cells.neighbors.cpu()
+    bins = int(needed.median())
+    *_, histogram = torch.ops.torchvor.lloyd_step(points, box, None, 16, 1, bins)
+    expected = torch.bincount(needed[needed < bins], minlength=bins).int()
+    expected[-1] += int((needed == bins).sum())
+    assert torch.equal(histogram, expected)
+
+
+def test_lloyd_step_empty_and_bad_inputs(device):
+    box = unit_box_tensor(torch.float32, device)
     empty = torch.empty(0, 3, device=device)
-    torch.library.opcheck(torch.ops.torchvor.lloyd_move.default,
-                          (empty, torch.empty(0, dtype=torch.int64, device=device), empty,
-                           torch.empty(0, dtype=torch.int8, device=device), torch.zeros(1, 3, device=device),
-                           torch.ones(1, 3, device=device)))
+    moved, volume, centroid, second_moment, status, neighbors, order, measures, histogram = (
+        torch.ops.torchvor.lloyd_step(empty, box, None, 8, 1, 16))
+    assert moved.shape == (0, 3) and order.shape == (0,) and volume.shape == (0,)
+    assert measures.tolist() == [0.0, 0.0] and histogram.tolist() == [0] * 16
+    points = samples.white_noise(50, seed=24, device=device)
+    step = torch.ops.torchvor.lloyd_step
+    with pytest.raises(ValueError, match="sample_stride must be >= 1"):
+        step(points, box, None, 8, 0, 16)
+    with pytest.raises(ValueError, match="histogram_bins must be in"):
+        step(points, box, None, 8, 1, 0)
+    with pytest.raises(ValueError, match="k must be"):
+        step(points, box, None, 0, 1, 16)
+    with pytest.raises(ValueError, match="inside box"):
+        step(points + 2, box, None, 8, 1, 16)
+    with pytest.raises(TypeError):
+        step(points, box.double(), None, 8, 1, 16)
 
 
-def test_lloyd_move_bad_inputs(device):
-    points, order, centroid, status, lower, upper = lloyd_move_inputs(device, torch.float32, n=10)
-    move = torch.ops.torchvor.lloyd_move
-    with pytest.raises(ValueError, match="centroid must have shape"):
-        move(points, order, centroid[:9], status, lower, upper)
-    with pytest.raises(TypeError, match="order must be int64"):
-        move(points, order.int(), centroid, status, lower, upper)
-    with pytest.raises(TypeError, match="status must be int8"):
-        move(points, order, centroid, status.int(), lower, upper)
-    with pytest.raises(TypeError, match="dtype of points"):
-        move(points, order, centroid.double(), status, lower, upper)
-    with pytest.raises(ValueError, match="upper must have shape"):
-        move(points, order, centroid, status, lower, upper[:, :2])
-    with pytest.raises(ValueError, match="lower and upper"):
-        move(points, order, centroid, status, lower.expand(10, 3).contiguous(), upper)
-    # An order that is not a permutation of the rows gives NaN rows, never a read out of bounds.
-    bad = order.clone()
-    bad[2], bad[6] = -1, 10
-    moved, displacement2 = move(points, bad, centroid, status, lower, upper)
-    assert bool(moved[[2, 6]].isnan().all() and displacement2[[2, 6]].isnan().all())
-    assert not bool(moved[[0, 1, 7]].isnan().any())
+def test_lloyd_step_opcheck(device):
+    for dtype in (torch.float32, torch.float64):
+        points = samples.white_noise(60, seed=25, dtype=dtype, device=device)
+        torch.library.opcheck(torch.ops.torchvor.lloyd_step.default,
+                              (points, unit_box_tensor(dtype, device), None, 12, 2, 32))
+        points, boxes, batch = two_clouds(device, dtype)
+        torch.library.opcheck(torch.ops.torchvor.lloyd_step.default, (points, boxes, batch, 12, 1, 64))
+    torch.library.opcheck(torch.ops.torchvor.lloyd_step.default,
+                          (torch.empty(0, 3, device=device), unit_box_tensor(torch.float32, device), None, 8, 1, 8))
 
 
 def test_progress_prints_one_line_per_iteration_to_stderr(capsys):

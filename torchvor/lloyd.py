@@ -13,8 +13,8 @@ that plus a small margin, so the few cells that need more are recomputed
 (automatically, by ``voronoi``) instead of all cells fetching too many.
 
 The points are kept in the order of the cell computation's grid (cells of
-nearby points in nearby rows): each iteration gets its cells in that order
-with the permutation (``torchvor.ops._voronoi_in_grid_order``), so neither
+nearby points in nearby rows): each iteration (one op, ``torchvor::lloyd_step``)
+gets its cells and the moved points in that order with the permutation, so neither
 the scattered gather back to the caller's rows nor, from the second
 iteration on, the scattered gather of the points into grid order is paid;
 the caller's order comes back once, at the end.
@@ -31,13 +31,14 @@ from typing import Callable, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .ops import BoxLike, CellStatus, VoronoiCells, _voronoi_in_grid_order, as_box
+from .ops import BoxLike, CellStatus, VoronoiCells, as_box
 
 FIRST_K = 64        # first-pass neighbours of the first iteration (white noise needs ~60-85)
 MIN_K, MAX_K = 8, 256
 K_QUANTILE = 0.99   # share of cells that the adapted k should cover in one pass
 K_MARGIN = 2        # cells need slightly fewer neighbours as points relax; a small margin suffices
 QUANTILE_SAMPLE = 1 << 16  # the quantile is taken over every cell up to this many, else a strided sample
+HISTOGRAM_BINS = 1024      # neighbour counts the quantile's histogram holds (MAX_K is far below)
 
 
 @dataclass
@@ -124,25 +125,18 @@ def lloyd(
     _check_arguments(points, iters, tol, k)
     current = points.detach()  # never written in place: each iteration makes a new tensor
     box_tensor = as_box(current, box, batch).detach()
-    lower, upper = _per_point_bounds(box_tensor, batch)
-    # Displacements are divided by the box diagonal, (1,) without batch or
-    # (N,) with one, in float64 (read along with the energy, see
-    # _move_to_centroids: no device sync before the first iteration).
-    diagonal = (upper - lower).to(torch.float64).norm(dim=1).clamp_min(torch.finfo(current.dtype).tiny)
-    # `current` (and the per-point bounds, the batch) in grid order: row i
-    # holds the caller's point row_of[i] (None: the caller's order).
+    # `current` (and the batch) in grid order: row i holds the caller's point
+    # row_of[i] (None: the caller's order).
     row_of: Optional[torch.Tensor] = None
     next_k = FIRST_K if k is None else k
     history: List[LloydStep] = []
     for iteration in range(iters):
         start = time.perf_counter()
-        # Failures are flagged, and reported below from the same single read.
-        cells, order = _voronoi_in_grid_order(current, box_tensor, batch, next_k)
+        # Failures are flagged, and reported below from the op's single read.
+        moved, cells, order, energy, max_displacement, failed, needed = _step(current, box_tensor, batch, next_k)
         row_of = order if row_of is None else row_of.index_select(0, order)
         if batch is not None:  # the grid order sorts by batch element first: still sorted
-            batch, lower, upper, diagonal = (t.index_select(0, order) for t in (batch, lower, upper, diagonal))
-        moved, energy, max_displacement, failed, needed = _move_to_centroids(
-            current, order, cells, lower, upper, diagonal)
+            batch = batch.index_select(0, order)
         if failed:
             warnings.warn(f"torchvor.lloyd: {failed} cell(s) could not be computed in iteration "
                           f"{iteration}; their points stay in place", RuntimeWarning, stacklevel=2)
@@ -194,61 +188,41 @@ def _check_arguments(points, iters, tol, k) -> None:
         raise ValueError(f"torchvor.lloyd: k must be None or a positive int, got {k!r}")
 
 
-def _per_point_bounds(box: torch.Tensor, batch: Optional[torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
-    """(lo, hi) of the box of every point: (N, 3) each, or (1, 3) without batch."""
-    lower, upper = box[:, 0], box[:, 1]
-    if batch is None:
-        return lower[:1], upper[:1]
-    return lower.index_select(0, batch), upper.index_select(0, batch)
+def _step(current: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor],
+          k: int) -> Tuple[torch.Tensor, VoronoiCells, torch.Tensor, float, float, int, int]:
+    """One Lloyd iteration (``torchvor::lloyd_step``) and what it measured:
+    (moved points, cells, order, energy, max displacement / box diagonal,
+    failed cells, neighbours needed by K_QUANTILE of the cells).
 
-
-def _move_to_centroids(current: torch.Tensor, order: torch.Tensor, cells: VoronoiCells, lower: torch.Tensor,
-                       upper: torch.Tensor, diagonal: torch.Tensor) -> Tuple[torch.Tensor, float, float, int, int]:
-    """One Lloyd move and what it measured, with one host read:
-    (moved points, energy, max displacement / box diagonal, failed cells,
-    neighbours needed by K_QUANTILE of the cells).
-
-    ``cells`` and ``order`` come from ``_voronoi_in_grid_order(current)``
-    (row i is the cell of ``current[order[i]]``); the moved points, the
-    bounds and the diagonals are by row. The tail of every iteration, so it
-    launches few kernels: on a GPU each one costs more host time than device
-    time. The move itself is one op (``torchvor::lloyd_move``: the centroid
-    clamped into the box, or the point where its cell failed, and the squared
-    displacement). The energy is summed in float64 (a float32 total blurs the
-    small decrease of late iterations); a failed cell's NaN second moment
-    makes it NaN, and only then are the failures counted. The quantile comes
-    from a histogram read with the rest (O(N), no sort). One box diagonal
-    (float64, shape (1,)) divides the largest displacement on the host;
-    per-point diagonals (N,) divide the displacements first.
+    The cells, the moved points and ``order`` are in the op's grid order: row
+    i is the cell of ``current[order[i]]``. The op launches the move, the
+    energy (summed in float64: a float32 total blurs the small decrease of
+    late iterations), the largest displacement and the histogram of the
+    neighbours the cells needed before it waits for the device, and reads
+    them to the host with its last status read, so a step waits once. A
+    failed cell's NaN second moment makes the energy NaN, and only then are
+    the failures counted (a second read). The quantile comes from a histogram
+    of at most 2 * QUANTILE_SAMPLE cells spread over the input (its standard
+    error is then ~0.05% of the cells; every cell's count contends for ~10
+    bins, which took 0.1 ms of the GPU at 1M).
     """
     count = current.shape[0]
-    if count == 0:
-        return current.clone(), 0.0, 0.0, 0, 0
-    moved, displacement2 = torch.ops.torchvor.lloyd_move.default(
-        current, order, cells.centroid, cells.status, lower, upper)
-    one_diagonal = diagonal.shape[0] == 1
-    if not one_diagonal:
-        displacement2 = displacement2 / diagonal.square()
-    # The quantile of at most 2 * QUANTILE_SAMPLE cells spread over the input
-    # (its standard error is then ~0.05% of the cells): a histogram of 1M
-    # counts took 0.1 ms of the GPU, the bins being few and contended.
-    sample = cells.neighbors[::max(1, count // QUANTILE_SAMPLE)]
-    # histc leaves out cells that needed more than 1024 neighbours; they lie above
-    # any quantile the histogram reaches, and if more than 1% do, `needed` comes out
-    # as 1024 (above MAX_K) because the cumulative count never reaches the rank.
-    bins = 1024
-    histogram = torch.histc(sample.to(torch.float64), bins=bins, min=0, max=bins)
-    read = torch.cat([cells.second_moment.sum(dtype=torch.float64).view(1),
-                      displacement2.max().view(1).to(torch.float64), diagonal[:1], histogram]).cpu().numpy()
-    energy, max_displacement = float(read[0]), math.sqrt(float(read[1]))
-    rank = min(sample.shape[0], max(1, math.ceil(K_QUANTILE * sample.shape[0])))
-    needed = int(np.searchsorted(np.cumsum(read[3:]), rank))  # first bin whose cumulative count reaches rank
+    stride = max(1, count // QUANTILE_SAMPLE)
+    # Cells that needed more than HISTOGRAM_BINS neighbours are left out of
+    # the histogram; they lie above any quantile it reaches, and if more than
+    # 1% do, `needed` comes out as HISTOGRAM_BINS (above MAX_K) because the
+    # cumulative count never reaches the rank.
+    moved, *outputs, order, measures, histogram = torch.ops.torchvor.lloyd_step.default(
+        current, box, batch, k, stride, HISTOGRAM_BINS)
+    cells = VoronoiCells(*outputs)
+    energy, largest_displacement2 = measures.tolist()
+    sample = (count + stride - 1) // stride
+    rank = min(sample, max(1, math.ceil(K_QUANTILE * sample)))
+    needed = int(np.searchsorted(np.cumsum(histogram.numpy()), rank))  # first bin whose cumulative count reaches rank
     failed = 0
     if not math.isfinite(energy):
         failed = int(((cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)).sum())
-    if one_diagonal:
-        max_displacement /= float(read[2])
-    return moved, energy, max_displacement, failed, needed
+    return moved, cells, order, energy, math.sqrt(largest_displacement2), failed, needed
 
 
 def _adapted_k(neighbors_needed: int) -> int:

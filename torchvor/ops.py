@@ -328,10 +328,13 @@ def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_M
     )
 
 
-@torch.library.register_fake("torchvor::lloyd_move")
-def _lloyd_move_fake(points, order, centroid, status, lower, upper):
+@torch.library.register_fake("torchvor::lloyd_step")
+def _lloyd_step_fake(points, box, batch, k, sample_stride, histogram_bins, memory_budget=DEFAULT_MEMORY_BUDGET):
     n = points.shape[0]
-    return points.new_empty((n, 3)), points.new_empty((n,))
+    cells = _voronoi_cells_fake(points, box, batch, k, memory_budget)
+    # The measures and the histogram are read to the host inside the op.
+    return (points.new_empty((n, 3)), *cells, points.new_empty((n,), dtype=torch.int64),
+            torch.empty((2,), dtype=torch.float64), torch.empty((histogram_bins,), dtype=torch.int32))
 
 
 @torch.library.register_fake("torchvor::voronoi_cells_grid_order")

@@ -3,16 +3,19 @@
 #include "../ops/lloyd.h"
 #include "exec.h"
 
+// Compiled in voronoi.cpp.
+TORCHVOR_VORONOI_FORWARD(extern, torchvor::cpu::CpuExec);
+
 namespace torchvor {
 namespace cpu {
 
-std::tuple<at::Tensor, at::Tensor> lloyd_move_cpu(const at::Tensor& points, const at::Tensor& order,
-                                                  const at::Tensor& centroid, const at::Tensor& status,
-                                                  const at::Tensor& lower, const at::Tensor& upper) {
-  return ops::lloyd_move_forward<CpuExec>(points, order, centroid, status, lower, upper);
+ops::LloydStepOutputs lloyd_step_cpu(const at::Tensor& points, const at::Tensor& box,
+                                     const c10::optional<at::Tensor>& batch, int64_t k, int64_t sample_stride,
+                                     int64_t histogram_bins, int64_t memory_budget) {
+  return ops::lloyd_step_forward<CpuExec>(points, box, batch, k, sample_stride, histogram_bins, memory_budget);
 }
 
-TORCH_LIBRARY_IMPL(torchvor, CPU, m) { m.impl("lloyd_move", &lloyd_move_cpu); }
+TORCH_LIBRARY_IMPL(torchvor, CPU, m) { m.impl("lloyd_step", &lloyd_step_cpu); }
 
 }  // namespace cpu
 }  // namespace torchvor

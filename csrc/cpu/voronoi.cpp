@@ -3,19 +3,23 @@
 #include "../ops/voronoi.h"
 #include "exec.h"
 
+// The one instantiation of this backend's passes, for the voronoi ops below
+// and for lloyd.cpp's torchvor::lloyd_step.
+TORCHVOR_VORONOI_FORWARD(, torchvor::cpu::CpuExec);
+
 namespace torchvor {
 namespace cpu {
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
-  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget).cells;
+  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, false, {}).cells;
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_grid_order_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
-  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true);
+  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true, {});
   return std::tuple_cat(out.cells, std::make_tuple(out.order));
 }
 

@@ -8,6 +8,10 @@
 // Compiled in clip_*.cu.
 TORCHVOR_CLIP_CHUNK_TIERS(extern);
 
+// The one instantiation of this backend's passes, for the voronoi ops below
+// and for lloyd.cu's torchvor::lloyd_step.
+TORCHVOR_VORONOI_FORWARD(, torchvor::cuda::CudaExec);
+
 namespace torchvor {
 namespace cuda {
 
@@ -18,7 +22,7 @@ ops::VoronoiOutputs voronoi_forward_cuda(const at::Tensor& points, const at::Ten
   // device check with a clear message instead of a guard error.
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order);
+  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order, {});
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(

@@ -154,29 +154,10 @@ void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t n
   }
 }
 
-void check_lloyd_move_inputs(const at::Tensor& points, const at::Tensor& order, const at::Tensor& centroid,
-                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper) {
-  check_points(points, "points");
-  const int64_t n = points.size(0);
-  check_like_points(points, centroid, "centroid");
-  TORCH_CHECK_VALUE(centroid.dim() == 2 && centroid.size(0) == n && centroid.size(1) == 3,
-                    "torchvor: centroid must have shape (", n, ", 3), got ", shape_string(centroid));
-  check_same_device(points, "points", order, "order");
-  TORCH_CHECK_TYPE(order.scalar_type() == at::kLong, "torchvor: order must be int64, got ",
-                   c10::toString(order.scalar_type()));
-  TORCH_CHECK_VALUE(order.dim() == 1 && order.size(0) == n, "torchvor: order must have shape (", n,
-                    ",), got ", shape_string(order));
-  check_same_device(points, "points", status, "status");
-  TORCH_CHECK_TYPE(status.scalar_type() == at::kChar, "torchvor: status must be int8, got ",
-                   c10::toString(status.scalar_type()));
-  TORCH_CHECK_VALUE(status.dim() == 1 && status.size(0) == n, "torchvor: status must have shape (", n,
-                    ",), got ", shape_string(status));
-  for (const auto& [bound, name] : {std::make_pair(lower, "lower"), std::make_pair(upper, "upper")}) {
-    check_like_points(points, bound, name);
-    TORCH_CHECK_VALUE(bound.dim() == 2 && bound.size(1) == 3 && (bound.size(0) == 1 || bound.size(0) == n),
-                      "torchvor: ", name, " must have shape (1, 3) or (", n, ", 3), got ", shape_string(bound));
-  }
-  TORCH_CHECK_VALUE(lower.size(0) == upper.size(0), "torchvor: lower and upper must have the same shape");
+void check_lloyd_step_inputs(int64_t sample_stride, int64_t histogram_bins) {
+  TORCH_CHECK_VALUE(sample_stride >= 1, "torchvor: sample_stride must be >= 1, got ", sample_stride);
+  TORCH_CHECK_VALUE(histogram_bins >= 1 && histogram_bins <= (1 << 20),
+                    "torchvor: histogram_bins must be in [1, 1048576], got ", histogram_bins);
 }
 
 }  // namespace ops

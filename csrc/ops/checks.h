@@ -52,10 +52,10 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
 // (grid.h, point_bounds) and the box (B, 2, 3) values.
 void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes);
 
-// Validates the arguments of torchvor::lloyd_move: shapes, dtypes, devices
-// (not the values: `order` out of range gives NaN rows, see LloydMoveFunctor).
-void check_lloyd_move_inputs(const at::Tensor& points, const at::Tensor& order, const at::Tensor& centroid,
-                             const at::Tensor& status, const at::Tensor& lower, const at::Tensor& upper);
+// Validates the arguments of torchvor::lloyd_step that voronoi_cells does not
+// take (check_voronoi_inputs checks the rest): the histogram's sample stride
+// and bins.
+void check_lloyd_step_inputs(int64_t sample_stride, int64_t histogram_bins);
 
 }  // namespace ops
 }  // namespace torchvor

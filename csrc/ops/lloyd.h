@@ -1,81 +1,137 @@
-// torchvor::lloyd_move, shared by the CPU and CUDA backends: one Lloyd move
-// of points whose cells came in grid order (voronoi_cells_grid_order).
+// torchvor::lloyd_step, shared by the CPU and CUDA backends: one Lloyd
+// iteration in one op. The cells come in grid order (voronoi_forward with
+// grid_order), every point moves to its cell's centroid, and what
+// torchvor.lloyd reads of the step (the energy, the largest move, the
+// neighbours the cells needed) is launched on the outputs before the passes'
+// status read (LaunchOnOutputs): the host waits for one read a step, where
+// the voronoi op, then the move and its sums from Python, waited for two,
+// with the device idle while the host launched the tail between them.
 #pragma once
 
 #include <ATen/ATen.h>
 
+#include <memory>
 #include <tuple>
 
 #include "../core/common.h"
 #include "../core/status.h"
 #include "checks.h"
+#include "voronoi.h"
 
 namespace torchvor {
 namespace ops {
 
-// Row i: the cell of points[order[i]]. Its point moves to the centroid,
-// clamped into the box (rounding can put a boundary cell's centroid an ulp
-// outside, which the next voronoi call would reject), unless the cell failed
-// (not SUCCESS or DUPLICATE: NaN centroid), whose point stays. One pass where
-// lloyd's tail was six tensor ops (a gather of the points into grid order,
-// clamp, subtraction, norm, the failed cells' where): 0.6 ms at 10M points
-// on an H100, and a launch each at 1M, where launches cost more host time
-// than device time.
+// Position i (the grid order) is the cell of points[order[i]]. Its point
+// moves to the centroid, clamped into its box (rounding can put a boundary
+// cell's centroid an ulp outside, which the next step would reject), unless
+// the cell failed (not SUCCESS or DUPLICATE: NaN centroid), whose point
+// stays. The displacement is measured in float64, relative to the box's
+// diagonal (a float32 square overflows for coordinates past ~1e19).
 template <typename T>
 struct LloydMoveFunctor {
-  const T* points;         // (N, 3), the previous order
-  const int64_t* order;    // (N,): row i is the cell of points[order[i]]
-  const T* centroid;       // (N, 3), by row
-  const int8_t* status;    // (N,), by row
-  const T* lower;          // (1 or N, 3): the box of each row
-  const T* upper;
-  int64_t bounds_stride;   // 0 (one box) or 3
-  int64_t n;
-  T* moved;                // (N, 3), by row
-  T* displacement2;        // (N,) |moved - point|^2
+  const T* points;         // (N, 3), the caller's rows
+  const int64_t* order;    // (N,): position i is the cell of points[order[i]], a permutation
+  const T* centroid;       // (N, 3), by position
+  const int8_t* status;    // (N,), by position
+  const T* box;            // (B, 2, 3)
+  const int64_t* batch;    // (N,), the batch element of each caller's row; nullptr: one box
+  T* moved;                // (N, 3), by position
+  double* displacement2;   // (N,), by position: |moved - point|^2 / |hi - lo|^2
 
   TV_HD void operator()(int64_t i) const {
     const int64_t row = order[i];
-    const T nan = T(0) / T(0);
-    if (row < 0 || row >= n) {  // not a permutation: NaN, never a read out of bounds
-      moved[3 * i] = moved[3 * i + 1] = moved[3 * i + 2] = displacement2[i] = nan;
-      return;
-    }
+    const T* lo = box + 6 * (batch != nullptr ? batch[row] : 0);
+    const T* hi = lo + 3;
     const int8_t code = status[i];
     const bool stays = code != core::kSuccess && code != core::kDuplicate;
-    const T* lo = lower + i * bounds_stride;
-    const T* hi = upper + i * bounds_stride;
-    T sum = T(0);
+    double moved2 = 0.0, diagonal2 = 0.0;
     for (int a = 0; a < 3; ++a) {
       const T point = points[3 * row + a];
-      const T c = centroid[3 * i + a];  // clamped as torch.clamp: NaN stays NaN
+      const T c = centroid[3 * i + a];
       const T to = stays ? point : (c < lo[a] ? lo[a] : (c > hi[a] ? hi[a] : c));
       moved[3 * i + a] = to;
-      sum += (to - point) * (to - point);
+      const double step = double(to) - double(point);
+      const double side = double(hi[a]) - double(lo[a]);
+      moved2 += step * step;
+      diagonal2 += side * side;
     }
-    displacement2[i] = sum;
+    // A box of one point (lo == hi) holds its points still: 0, not 0 / 0.
+    displacement2[i] = diagonal2 > 0.0 ? moved2 / diagonal2 : 0.0;
   }
 };
 
+// bins[c] counts the sampled positions (every `stride`-th) whose cells
+// needed c neighbours, the last bin also those that needed exactly
+// num_bins; counts past that or below 0 are left out (as torch.histc over
+// [0, num_bins] with num_bins bins). torchvor.lloyd takes the next step's k
+// from its quantile: a strided sample, because ~10 busy bins contended by
+// every cell took 0.1 ms of the GPU at 1M points.
+struct StridedHistogramFunctor {
+  const int32_t* needed;  // (N,) the neighbours each cell needed
+  int64_t stride;
+  int32_t* bins;          // (num_bins,), zeroed
+  int32_t num_bins;
+
+  TV_HD void operator()(int64_t i) const {
+    const int32_t count = needed[i * stride];
+    if (count >= 0 && count <= num_bins) core::atomic_increment(bins + core::min_of(count, num_bins - 1));
+  }
+};
+
+using LloydStepOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
+                                    at::Tensor, at::Tensor>;
+
+// torchvor::lloyd_step (registration.cpp has the schema). The measures
+// and the histogram are read from the device once, with the passes' last
+// status read when no pass follows the first (LaunchOnOutputs).
 template <typename Exec>
-std::tuple<at::Tensor, at::Tensor> lloyd_move_forward(const at::Tensor& points_in, const at::Tensor& order_in,
-                                                      const at::Tensor& centroid_in, const at::Tensor& status_in,
-                                                      const at::Tensor& lower_in, const at::Tensor& upper_in) {
-  check_lloyd_move_inputs(points_in, order_in, centroid_in, status_in, lower_in, upper_in);
-  const at::Tensor points = points_in.contiguous(), order = order_in.contiguous();
-  const at::Tensor centroid = centroid_in.contiguous(), status = status_in.contiguous();
-  const at::Tensor lower = lower_in.contiguous(), upper = upper_in.contiguous();
+LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tensor& box_in,
+                                    const c10::optional<at::Tensor>& batch_in, int64_t k, int64_t sample_stride,
+                                    int64_t histogram_bins, int64_t memory_budget) {
+  check_lloyd_step_inputs(sample_stride, histogram_bins);
+  const at::Tensor points = points_in.contiguous();
+  const at::Tensor box = box_in.contiguous();
+  const c10::optional<at::Tensor> batch =
+      batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
   const int64_t n = points.size(0);
-  const at::Tensor moved = Exec::empty({n, 3}, points.options());
-  const at::Tensor displacement2 = Exec::empty({n}, points.options());
-  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::lloyd_move", [&] {
-    Exec::for_each(n, LloydMoveFunctor<scalar_t>{
-                          points.data_ptr<scalar_t>(), order.data_ptr<int64_t>(), centroid.data_ptr<scalar_t>(),
-                          status.data_ptr<int8_t>(), lower.data_ptr<scalar_t>(), upper.data_ptr<scalar_t>(),
-                          lower.size(0) == 1 ? 0 : 3, n, moved.data_ptr<scalar_t>(),
-                          displacement2.data_ptr<scalar_t>()});
-  });
-  return {moved, displacement2};
+  // On the device: (energy, largest displacement2) in float64, then the
+  // histogram's int32 bins, two a float64 word, so that one copy reads all.
+  at::Tensor moved, summary;
+  std::unique_ptr<typename Exec::HostRead> summary_read;
+  // Launched by voronoi_forward once the outputs are complete (the inputs
+  // are checked by then).
+  const auto launch_tail = [&](const VoronoiOutputs& cells) {
+    const at::Tensor& centroid = std::get<1>(cells.cells);
+    const at::Tensor& second_moment = std::get<2>(cells.cells);
+    const at::Tensor& status = std::get<3>(cells.cells);
+    const at::Tensor& neighbors = std::get<4>(cells.cells);
+    moved = Exec::empty({n, 3}, points.options());
+    const at::Tensor displacement2 = Exec::empty({n}, points.options().dtype(at::kDouble));
+    summary = at::zeros({2 + (histogram_bins + 1) / 2}, points.options().dtype(at::kDouble));
+    AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::lloyd_step", [&] {
+      Exec::for_each(n, LloydMoveFunctor<scalar_t>{
+                            points.data_ptr<scalar_t>(), cells.order.data_ptr<int64_t>(),
+                            centroid.data_ptr<scalar_t>(), status.data_ptr<int8_t>(), box.data_ptr<scalar_t>(),
+                            batch.has_value() ? batch->data_ptr<int64_t>() : nullptr, moved.data_ptr<scalar_t>(),
+                            displacement2.data_ptr<double>()});
+    });
+    if (n > 0) {  // an empty reduction is an error; the zeros stand
+      at::Tensor energy = summary.select(0, 0), largest = summary.select(0, 1);
+      at::sum_out(energy, second_moment, {0}, /*keepdim=*/false, at::kDouble);
+      at::amax_out(largest, displacement2, {0}, /*keepdim=*/false);
+      const at::Tensor bins = summary.slice(0, 2).view(at::kInt);
+      Exec::for_each((n + sample_stride - 1) / sample_stride,
+                     StridedHistogramFunctor{neighbors.data_ptr<int32_t>(), sample_stride, bins.data_ptr<int32_t>(),
+                                             static_cast<int32_t>(histogram_bins)});
+    }
+    summary_read = std::make_unique<typename Exec::HostRead>(summary);
+  };
+  const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, true, launch_tail);
+  const at::Tensor read = summary_read->wait();
+  const at::Tensor measures = read.slice(0, 0, 2).clone();
+  const at::Tensor histogram = read.slice(0, 2).view(at::kInt).slice(0, 0, histogram_bins).clone();
+  const auto& [volume, centroid, second_moment, status, neighbors] = cells.cells;
+  return {moved, volume, centroid, second_moment, status, neighbors, cells.order, measures, histogram};
 }
 
 }  // namespace ops

@@ -15,6 +15,7 @@
 #include <cstddef>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
 #include <limits>
 #include <tuple>
 #include <type_traits>
@@ -317,6 +318,18 @@ struct VoronoiOutputs {
   CallerOutputs cells;
   at::Tensor order;  // undefined unless grid_order
 };
+
+// Work that a call launches on its outputs before the op returns
+// (torchvor::lloyd_step's move and sums, which the host then reads).
+// voronoi_passes launches it before the first status read, the last one of
+// most calls, so that the device runs it while the host waits for that read;
+// and once more after the passes if a later pass or the poison of unwritten
+// cells changed the outputs since (that launch's results replace the
+// first's). Launched after the read, from Python, that work cost a Lloyd
+// step 0.2-0.4 ms of idle device (the launches and a second read): one step
+// at 1M blue noise took 4.56-4.58 ms that way, 4.14-4.17 this way (H100,
+// benchmarks/NOTES.md).
+using LaunchOnOutputs = std::function<void(const VoronoiOutputs&)>;
 
 // The five outputs from the records by position: in the caller's rows, or
 // in grid order with the order (torchvor::voronoi_cells_grid_order, which
@@ -802,11 +815,16 @@ template <typename Exec, typename io_t>
 VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
                               const Prepared& prepared, c10::optional<int64_t> k_in, int64_t memory_budget,
-                              bool grid_order) {
+                              bool grid_order, const LaunchOnOutputs& on_outputs) {
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);
   PositionOutputs out = poisoned_outputs<io_t>(prepared.status, points.options());
-  if (n == 0) return finish_outputs<Exec, io_t>(out, points.options(), grid_order);
+  const auto finished = [&] {
+    VoronoiOutputs outputs = finish_outputs<Exec, io_t>(out, points.options(), grid_order);
+    if (on_outputs) on_outputs(outputs);
+    return outputs;
+  };
+  if (n == 0) return finished();
   // The largest batch element bounds the useful k: a query that asks for as
   // many neighbours as its cloud has points gets -1 padding, i.e. all of them.
   int64_t largest_cloud = 0;  // from the counts already read with the bounds
@@ -874,8 +892,13 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                                                    cells.size(0), scan_threads, failed_cells.data_ptr<int32_t>(),
                                                    words, live_count});
   };
+  // The outputs finished before the first read (with on_outputs), which
+  // stand unless a later pass runs or unwritten cells are poisoned.
+  c10::optional<VoronoiOutputs> finished_early;
+  int passes_run = 0;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
     run(pending, pass, neighbor_spread);
+    ++passes_run;
     forget_cell_for_tests<io_t>(attempt, out);
     // Which status codes this pass produced and which cells failed (words 0
     // and 1), in one read (one device sync). The failed cells come in no set
@@ -907,6 +930,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
       // 35.33 here).
       out.position_of_row = invert_order<Exec>(out.row_of_position);
     }
+    if (attempt == 0 && on_outputs) finished_early = finished();
     const at::Tensor read = reading.wait();
     int32_t seen_bits = read.data_ptr<int32_t>()[0];
     int64_t failed = read.data_ptr<int32_t>()[1];
@@ -936,14 +960,18 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     Exec::for_each(last_failed.size(0), PoisonUnwrittenFunctor<io_t>{last_failed.data_ptr<int32_t>(),
                                                                     out.status.data_ptr<int8_t>(), out.data<io_t>()});
   }
-  return finish_outputs<Exec, io_t>(out, points.options(), grid_order);
+  if (finished_early.has_value() && passes_run == 1 && !unwritten) return *finished_early;
+  return finished();
 }
 
-// torchvor::voronoi_cells, or with `grid_order` torchvor::voronoi_cells_grid_order.
+// torchvor::voronoi_cells, or with `grid_order` torchvor::voronoi_cells_grid_order;
+// `on_outputs` (torchvor::lloyd_step) is launched on the outputs before the
+// call returns (LaunchOnOutputs). Each backend instantiates it once
+// (voronoi.cpp, voronoi.cu), for its voronoi ops and its lloyd_step.
 template <typename Exec>
 VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
                                const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
-                               int64_t memory_budget, bool grid_order = false) {
+                               int64_t memory_budget, bool grid_order, const LaunchOnOutputs& on_outputs) {
   check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
   const int64_t num_boxes = box_in.size(0);
   const at::Tensor points = points_in.contiguous();
@@ -968,10 +996,21 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
   VoronoiOutputs result;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
-    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, grid_order);
+    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, grid_order,
+                                            on_outputs);
   });
   return result;
 }
 
 }  // namespace ops
 }  // namespace torchvor
+
+// TORCHVOR_VORONOI_FORWARD(, Exec) instantiates voronoi_forward for a backend
+// (voronoi.cpp, voronoi.cu); TORCHVOR_VORONOI_FORWARD(extern, Exec) declares
+// that instantiation where torchvor::lloyd_step calls it (lloyd.cpp,
+// lloyd.cu), so that each backend compiles its passes once.
+#define TORCHVOR_VORONOI_FORWARD(EXTERN, Exec)                                                                \
+  EXTERN template torchvor::ops::VoronoiOutputs torchvor::ops::voronoi_forward<Exec>(                          \
+      const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,                \
+      c10::optional<int64_t> k, int64_t memory_budget, bool grid_order,                                       \
+      const torchvor::ops::LaunchOnOutputs& on_outputs)
