@@ -202,6 +202,9 @@ def test_callback_sees_the_callers_order(device):
 # ---- lloyd_step (one iteration in one op: the cells in grid order, the move, its measures) ----
 
 
+VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors")
+
+
 def expected_step(points, box, batch, k, stride, bins):
     """lloyd_step's outputs from the grid-order voronoi op and tensor ops (an
     oracle for the move and the measures; the cells are the voronoi op's)."""
@@ -256,9 +259,6 @@ def test_lloyd_step_against_the_voronoi_op_and_tensor_ops(device, dtype, batched
     torch.testing.assert_close(measures, expected_measures, rtol=1e-12, atol=0)
     assert histogram.device.type == "cpu" and histogram.dtype == torch.int32
     assert torch.equal(histogram, expected_histogram)
-
-
-VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors")
 
 
 def test_lloyd_step_histogram_bins_edges(device):

@@ -94,20 +94,21 @@ LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tenso
   const c10::optional<at::Tensor> batch =
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
   const int64_t n = points.size(0);
-  // On the device: (energy, largest displacement2) in float64, then the
-  // histogram's int32 bins, two a float64 word, so that one copy reads all.
-  at::Tensor moved, summary;
+  at::Tensor moved;
   std::unique_ptr<typename Exec::HostRead> summary_read;
   // Launched by voronoi_forward once the outputs are complete (the inputs
-  // are checked by then).
+  // are checked by then); a second launch replaces the first's results.
   const auto launch_tail = [&](const VoronoiOutputs& cells) {
+    moved.reset();  // an earlier launch's, no longer wanted: not held beside the new one
     const at::Tensor& centroid = std::get<1>(cells.cells);
     const at::Tensor& second_moment = std::get<2>(cells.cells);
     const at::Tensor& status = std::get<3>(cells.cells);
     const at::Tensor& neighbors = std::get<4>(cells.cells);
     moved = Exec::empty({n, 3}, points.options());
     const at::Tensor displacement2 = Exec::empty({n}, points.options().dtype(at::kDouble));
-    summary = at::zeros({2 + (histogram_bins + 1) / 2}, points.options().dtype(at::kDouble));
+    // (energy, largest displacement2) in float64, then the histogram's int32
+    // bins, two a float64 word, so that one copy reads all.
+    const at::Tensor summary = at::zeros({2 + (histogram_bins + 1) / 2}, points.options().dtype(at::kDouble));
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::lloyd_step", [&] {
       Exec::for_each(n, LloydMoveFunctor<scalar_t>{
                             points.data_ptr<scalar_t>(), cells.order.data_ptr<int64_t>(),

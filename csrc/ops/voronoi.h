@@ -893,12 +893,12 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                                                    words, live_count});
   };
   // The outputs finished before the first read (with on_outputs), which
-  // stand unless a later pass runs or unwritten cells are poisoned.
+  // stand unless a later pass runs (dropped then, so that two sets of
+  // outputs are not held at once) or unwritten cells are poisoned.
   c10::optional<VoronoiOutputs> finished_early;
-  int passes_run = 0;
   for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
+    if (attempt > 0) finished_early.reset();
     run(pending, pass, neighbor_spread);
-    ++passes_run;
     forget_cell_for_tests<io_t>(attempt, out);
     // Which status codes this pass produced and which cells failed (words 0
     // and 1), in one read (one device sync). The failed cells come in no set
@@ -960,7 +960,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     Exec::for_each(last_failed.size(0), PoisonUnwrittenFunctor<io_t>{last_failed.data_ptr<int32_t>(),
                                                                     out.status.data_ptr<int8_t>(), out.data<io_t>()});
   }
-  if (finished_early.has_value() && passes_run == 1 && !unwritten) return *finished_early;
+  if (finished_early.has_value() && !unwritten) return *finished_early;
   return finished();
 }
 
