@@ -4,6 +4,7 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
+#include <algorithm>
 #include <cstddef>
 #include <limits>
 #include <memory>
@@ -52,9 +53,21 @@ struct CpuExec {
   }
 
   // The permutation (int32) that sorts `keys` (int32, each below 2^bits)
-  // stably.
-  static at::Tensor stable_order(const at::Tensor& keys, int /*bits*/, const at::Tensor& /*identity*/ = {}) {
-    return std::get<1>(at::sort(keys, /*stable=*/true, /*dim=*/0, /*descending=*/false)).to(at::kInt);
+  // stably; `sorted_keys`, where given, receives the keys in sorted order.
+  static at::Tensor stable_order(const at::Tensor& keys, int /*bits*/, const at::Tensor& /*identity*/ = {},
+                                 at::Tensor* sorted_keys = nullptr) {
+    const auto sorted = at::sort(keys, /*stable=*/true, /*dim=*/0, /*descending=*/false);
+    if (sorted_keys != nullptr) *sorted_keys = std::get<0>(sorted);
+    return std::get<1>(sorted).to(at::kInt);
+  }
+
+  // out[i] = max(values[0..i]) of an int32 tensor (one pass, one thread:
+  // a grid's cells, a few per point at most).
+  static at::Tensor running_max(const at::Tensor& values) {
+    const at::Tensor out = values.contiguous().clone();
+    int32_t* data = out.data_ptr<int32_t>();
+    for (int64_t i = 1; i < out.numel(); ++i) data[i] = std::max(data[i], data[i - 1]);
+    return out;
   }
 
   // A small tensor read on the host: here it is there already.

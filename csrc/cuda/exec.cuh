@@ -9,6 +9,7 @@
 #include <cstdlib>
 
 #include <cub/device/device_radix_sort.cuh>
+#include <cub/device/device_scan.cuh>
 
 #include "../core/common.h"
 #include "../core/device_count.h"
@@ -101,6 +102,11 @@ struct IotaFunctor {
   __device__ void operator()(int64_t i) const { out[i] = static_cast<int32_t>(i); }
 };
 
+// The larger of two int32 (running_max's scan).
+struct MaxOfInt32 {
+  __device__ int32_t operator()(int32_t a, int32_t b) const { return a < b ? b : a; }
+};
+
 struct CudaExec {
   using Lanes = core::WarpLanes;  // the lanes of one cooperative item
 
@@ -147,19 +153,22 @@ struct CudaExec {
   // stably: cub's radix sort over those bits only, carrying int32 indices.
   // (at::sort carried int64 indices through all 32 bits of the keys: four
   // passes where a grid of 5M cells needs three.) `identity`, where given,
-  // is iota(n), which the sort reads as its indices.
-  static at::Tensor stable_order(const at::Tensor& keys, int bits, const at::Tensor& given_identity = {}) {
+  // is iota(n), which the sort reads as its indices; `sorted_keys`, where
+  // given, receives the keys in sorted order.
+  static at::Tensor stable_order(const at::Tensor& keys, int bits, const at::Tensor& given_identity = {},
+                                 at::Tensor* sorted_keys = nullptr) {
     const int64_t n = keys.size(0);
     TORCH_CHECK(n < (int64_t(1) << 31), "torchvor: too many points for int32 indices");
     const at::Tensor identity = given_identity.defined() ? given_identity : iota(n, keys.options());
+    const at::Tensor keys_out = at::empty_like(keys);
+    if (sorted_keys != nullptr) *sorted_keys = keys_out;
     if (n == 0) return identity;
-    const at::Tensor sorted_keys = at::empty_like(keys);
     const at::Tensor order = at::empty_like(keys);
     const auto sort = [&](void* scratch, size_t& scratch_bytes) {
       // Non-negative int32 keys sort as their uint32 bits.
       return cub::DeviceRadixSort::SortPairs(
           scratch, scratch_bytes, reinterpret_cast<const uint32_t*>(keys.data_ptr<int32_t>()),
-          reinterpret_cast<uint32_t*>(sorted_keys.data_ptr<int32_t>()), identity.data_ptr<int32_t>(),
+          reinterpret_cast<uint32_t*>(keys_out.data_ptr<int32_t>()), identity.data_ptr<int32_t>(),
           order.data_ptr<int32_t>(), static_cast<int>(n), 0, bits, at::cuda::getCurrentCUDAStream());
     };
     size_t scratch_bytes = 0;
@@ -167,6 +176,24 @@ struct CudaExec {
     const at::Tensor scratch = at::empty({static_cast<int64_t>(scratch_bytes)}, keys.options().dtype(at::kByte));
     C10_CUDA_CHECK(sort(scratch.data_ptr(), scratch_bytes));
     return order;
+  }
+
+  // out[i] = max(values[0..i]) of an int32 tensor: cub's scan.
+  static at::Tensor running_max(const at::Tensor& values) {
+    const int64_t n = values.size(0);
+    TORCH_CHECK(n < (int64_t(1) << 31), "torchvor: too many grid cells for an int32 scan");
+    const at::Tensor out = at::empty_like(values);
+    if (n == 0) return out;
+    const auto scan = [&](void* scratch, size_t& scratch_bytes) {
+      return cub::DeviceScan::InclusiveScan(scratch, scratch_bytes, values.data_ptr<int32_t>(),
+                                            out.data_ptr<int32_t>(), MaxOfInt32{}, static_cast<int>(n),
+                                            at::cuda::getCurrentCUDAStream());
+    };
+    size_t scratch_bytes = 0;
+    C10_CUDA_CHECK(scan(nullptr, scratch_bytes));
+    const at::Tensor scratch = at::empty({static_cast<int64_t>(scratch_bytes)}, values.options().dtype(at::kByte));
+    C10_CUDA_CHECK(scan(scratch.data_ptr(), scratch_bytes));
+    return out;
   }
 
   // A small device tensor's copy to the host (pinned memory), which the

@@ -81,9 +81,7 @@ inline void grid_shape(const double extent[3], int64_t count, double points_per_
 
 // Flat cell id (int32) of every point, computed by core::grid_coordinate:
 // the assignment the kNN search assumes, on either backend, in one pass
-// (the tensor-op version took a dozen kernel launches on the GPU). With
-// `counts`, each point also counts itself in the slot after its cell's,
-// whose running sum is then the cells' starts.
+// (the tensor-op version took a dozen kernel launches on the GPU).
 template <typename T>
 struct CellIdFunctor {
   const T* points;          // (N, 3)
@@ -93,7 +91,6 @@ struct CellIdFunctor {
   const int32_t* dims;      // (B, 3)
   const int32_t* cell_offset;  // (B,)
   int32_t* ids;             // (N,)
-  int32_t* counts;          // (num_cells + 1,) zeroed, or nullptr: counts[c + 1] points in cell c
 
   TV_HD void operator()(int64_t i) const {
     const int64_t b = batch ? batch[i] : 0;
@@ -102,27 +99,51 @@ struct CellIdFunctor {
     const int32_t x = core::grid_coordinate(points[3 * i], origin[3 * b], h, dx);
     const int32_t y = core::grid_coordinate(points[3 * i + 1], origin[3 * b + 1], h, dy);
     const int32_t z = core::grid_coordinate(points[3 * i + 2], origin[3 * b + 2], h, dz);
-    const int32_t id = cell_offset[b] + (z * dy + y) * dx + x;
-    ids[i] = id;
-    if (counts) core::atomic_increment(counts + id + 1);
+    ids[i] = cell_offset[b] + (z * dy + y) * dx + x;
   }
 };
 
-// The cell id (N,) int32 of every point; with `counts` ((num_cells + 1,)
-// int32, zeroed), the points of each cell counted in it (CellIdFunctor).
+// The cell id (N,) int32 of every point (CellIdFunctor).
 template <typename Exec>
-at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
-                    const Grid& grid, const at::Tensor& counts = at::Tensor()) {
+at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& batch, const Grid& grid) {
   at::Tensor ids = at::empty({points.size(0)}, points.options().dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::cell_ids", [&] {
     const CellIdFunctor<scalar_t> functor{
         points.data_ptr<scalar_t>(), batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
         grid.origin.data_ptr<scalar_t>(), grid.cell_size.data_ptr<scalar_t>(),
-        grid.dims.data_ptr<int32_t>(), grid.cell_offset.data_ptr<int32_t>(), ids.data_ptr<int32_t>(),
-        counts.defined() ? counts.data_ptr<int32_t>() : nullptr};
+        grid.dims.data_ptr<int32_t>(), grid.cell_offset.data_ptr<int32_t>(), ids.data_ptr<int32_t>()};
     Exec::for_each(points.size(0), functor);
   });
   return ids;
+}
+
+// ends[c + 1] = one past the last sorted point of cell c, for every cell
+// that holds points (the others keep their 0): the last point of each run of
+// equal ids in the sorted ids writes it.
+struct CellEndFunctor {
+  const int32_t* sorted_ids;  // (N,) cell ids in increasing order
+  int64_t n;
+  int32_t* ends;              // (num_cells + 1,) zeroed
+
+  TV_HD void operator()(int64_t i) const {
+    const int32_t id = sorted_ids[i];
+    if (i + 1 == n || sorted_ids[i + 1] != id) ends[id + 1] = static_cast<int32_t>(i + 1);
+  }
+};
+
+// The first sorted point of each cell, (num_cells + 1,) int32 with N last,
+// from the sorted cell ids: the running maximum of the cells' ends
+// (CellEndFunctor), as an empty cell starts where the last cell before it
+// with points ends. The ends are plain stores, one a cell. Counting the
+// points of each cell by atomic adds in the cell-id kernel instead took that
+// kernel 214 us at 10M blue-noise points, against 59 without them and 49 for
+// the ends (H100, benchmarks/NOTES.md).
+template <typename Exec>
+at::Tensor cell_starts(const at::Tensor& sorted_ids, int64_t num_cells) {
+  const at::Tensor ends = at::zeros({num_cells + 1}, sorted_ids.options());
+  Exec::for_each(sorted_ids.size(0), CellEndFunctor{sorted_ids.data_ptr<int32_t>(), sorted_ids.size(0),
+                                                    ends.data_ptr<int32_t>()});
+  return Exec::running_max(ends);
 }
 
 // out[i] = points[index[i]], rows of 3 coordinates. (index_select on the
@@ -265,15 +286,15 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   grid.cell_size = region(size_at, num_batches, points.scalar_type());
   grid.dims = region(dims_at, 3 * num_batches, at::kInt).view({num_batches, 3});
   grid.cell_offset = region(offset_at, num_batches, at::kInt);
-  // The cells' starts from their counts (no search over the sorted ids),
-  // and a stable sort (exact duplicates keep their order) over only the
-  // bits the cell ids use (Exec::stable_order).
-  const at::Tensor counts = at::zeros({total_cells + 1}, points.options().dtype(at::kInt));
-  const at::Tensor ids = cell_ids<Exec>(points, batch, grid, counts);
-  const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells), identity);
+  // A stable sort (exact duplicates keep their order) over only the bits
+  // the cell ids use (Exec::stable_order), and the cells' starts from the
+  // sorted ids (cell_starts).
+  const at::Tensor ids = cell_ids<Exec>(points, batch, grid);
+  at::Tensor sorted_ids;
+  const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells), identity, &sorted_ids);
   grid.sorted_points = gather_points<Exec>(points, permutation);
   grid.sorted_index = permutation;
-  grid.cell_start = counts.cumsum(0, at::kInt);
+  grid.cell_start = cell_starts<Exec>(sorted_ids, total_cells);
   return grid;
 }
 
