@@ -330,10 +330,9 @@ def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_M
 
 @torch.library.register_fake("torchvor::lloyd_step")
 def _lloyd_step_fake(points, box, batch, k, sample_stride, histogram_bins, memory_budget=DEFAULT_MEMORY_BUDGET):
-    n = points.shape[0]
-    cells = _voronoi_cells_fake(points, box, batch, k, memory_budget)
+    cells_and_order = _voronoi_cells_grid_order_fake(points, box, batch, k, memory_budget)
     # The measures and the histogram are read to the host inside the op.
-    return (points.new_empty((n, 3)), *cells, points.new_empty((n,), dtype=torch.int64),
+    return (points.new_empty((points.shape[0], 3)), *cells_and_order,
             torch.empty((2,), dtype=torch.float64), torch.empty((histogram_bins,), dtype=torch.int32))
 
 
