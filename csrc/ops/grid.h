@@ -117,61 +117,39 @@ at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& b
   return ids;
 }
 
-// ends[c + 1] = one past the last sorted point of cell c, for every cell
-// that holds points (the others keep their 0): the last point of each run of
-// equal ids in the sorted ids writes it.
-struct CellEndFunctor {
+// The points in cell order and where each cell's run of them ends, in one
+// pass over the sorted order:
+// - out[i] = points[index[i]], rows of 3 coordinates (index_select on the
+//   (N, 3) tensor gathered one element a thread, its index loaded for each:
+//   349 us for 10M float32 points on an H100);
+// - ends[c + 1] = one past the last sorted point of cell c, for every cell
+//   that holds points (the others keep their 0), written by the last point
+//   of each run of equal ids: one plain store a cell. Their running maximum
+//   is the cells' starts, as an empty cell starts where the last cell before
+//   it with points ends.
+// Counting each cell's points by atomic adds in the cell-id kernel instead
+// took that kernel 214 us at 10M blue-noise points, against 59 without them;
+// the ends in a kernel of their own took 49 us more, a pass over the sorted
+// ids that the gather, bound by its scattered reads of the points, absorbs
+// (H100, benchmarks/NOTES.md).
+template <typename T>
+struct GatherByCellFunctor {
+  const T* points;            // (N, 3)
+  const int32_t* index;       // (N,) the sort's permutation
   const int32_t* sorted_ids;  // (N,) cell ids in increasing order
   int64_t n;
-  int32_t* ends;              // (num_cells + 1,) zeroed
-
-  TV_HD void operator()(int64_t i) const {
-    const int32_t id = sorted_ids[i];
-    if (i + 1 == n || sorted_ids[i + 1] != id) ends[id + 1] = static_cast<int32_t>(i + 1);
-  }
-};
-
-// The first sorted point of each cell, (num_cells + 1,) int32 with N last,
-// from the sorted cell ids: the running maximum of the cells' ends
-// (CellEndFunctor), as an empty cell starts where the last cell before it
-// with points ends. The ends are plain stores, one a cell. Counting the
-// points of each cell by atomic adds in the cell-id kernel instead took that
-// kernel 214 us at 10M blue-noise points, against 59 without them and 49 for
-// the ends (H100, benchmarks/NOTES.md).
-template <typename Exec>
-at::Tensor cell_starts(const at::Tensor& sorted_ids, int64_t num_cells) {
-  const at::Tensor ends = at::zeros({num_cells + 1}, sorted_ids.options());
-  Exec::for_each(sorted_ids.size(0), CellEndFunctor{sorted_ids.data_ptr<int32_t>(), sorted_ids.size(0),
-                                                    ends.data_ptr<int32_t>()});
-  return Exec::running_max(ends);
-}
-
-// out[i] = points[index[i]], rows of 3 coordinates. (index_select on the
-// (N, 3) tensor gathers one element a thread, its index loaded for each:
-// 349 us for 10M float32 points on an H100.)
-template <typename T>
-struct GatherPointsFunctor {
-  const T* points;        // (N, 3)
-  const int32_t* index;   // (M,)
-  T* out;                 // (M, 3)
+  T* out;                     // (N, 3)
+  int32_t* ends;              // (num_cells + 1,), zeroed
 
   TV_HD void operator()(int64_t i) const {
     const int64_t from = 3 * int64_t(index[i]);
     out[3 * i] = points[from];
     out[3 * i + 1] = points[from + 1];
     out[3 * i + 2] = points[from + 2];
+    const int32_t id = sorted_ids[i];
+    if (i + 1 == n || sorted_ids[i + 1] != id) ends[id + 1] = static_cast<int32_t>(i + 1);
   }
 };
-
-template <typename Exec>
-at::Tensor gather_points(const at::Tensor& points, const at::Tensor& index) {
-  const at::Tensor out = at::empty({index.size(0), 3}, points.options());
-  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::gather_points", [&] {
-    Exec::for_each(index.size(0), GatherPointsFunctor<scalar_t>{points.data_ptr<scalar_t>(), index.data_ptr<int32_t>(),
-                                                               out.data_ptr<scalar_t>()});
-  });
-  return out;
-}
 
 // The bits a cell id of a grid of `num_cells` cells uses (what a radix sort
 // by cell must look at).
@@ -287,14 +265,21 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   grid.dims = region(dims_at, 3 * num_batches, at::kInt).view({num_batches, 3});
   grid.cell_offset = region(offset_at, num_batches, at::kInt);
   // A stable sort (exact duplicates keep their order) over only the bits
-  // the cell ids use (Exec::stable_order), and the cells' starts from the
-  // sorted ids (cell_starts).
+  // the cell ids use (Exec::stable_order), then the points in that order and
+  // the cells' starts from the sorted ids (GatherByCellFunctor).
   const at::Tensor ids = cell_ids<Exec>(points, batch, grid);
   at::Tensor sorted_ids;
   const at::Tensor permutation = Exec::stable_order(ids, cell_id_bits(total_cells), identity, &sorted_ids);
-  grid.sorted_points = gather_points<Exec>(points, permutation);
+  const int64_t n = points.size(0);
+  grid.sorted_points = at::empty({n, 3}, points.options());
+  const at::Tensor ends = at::zeros({total_cells + 1}, sorted_ids.options());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::gather_by_cell", [&] {
+    Exec::for_each(n, GatherByCellFunctor<scalar_t>{points.data_ptr<scalar_t>(), permutation.data_ptr<int32_t>(),
+                                                    sorted_ids.data_ptr<int32_t>(), n,
+                                                    grid.sorted_points.data_ptr<scalar_t>(), ends.data_ptr<int32_t>()});
+  });
   grid.sorted_index = permutation;
-  grid.cell_start = cell_starts<Exec>(sorted_ids, total_cells);
+  grid.cell_start = Exec::running_max(ends);  // (num_cells + 1,), N last
   return grid;
 }
 
