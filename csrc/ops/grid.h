@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <functional>
 #include <vector>
 
 #include "../core/grid_search.h"
@@ -166,15 +167,25 @@ inline int cell_id_bits(int64_t num_cells) {
 // in order into `extra_out`; without a batch they travel in the points' dtype,
 // so they must be exact in it (conditions, coordinates).
 //
+// `meanwhile`, where given, is launched after the copy and before the host
+// waits for it: device work that needs no bounds (voronoi_forward's positions
+// and statuses) then runs while the host takes the values in, instead of
+// before the copy, where the host waited for it too.
+//
 // A NaN coordinate makes its element's bounds NaN (aminmax and scatter_reduce
 // propagate it on the CPU; a CUDA scatter_reduce need not: callers with a
 // batch check finiteness separately).
-inline at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
-                               int64_t num_batches, const std::vector<at::Tensor>& extra = {},
-                               std::vector<double>* extra_out = nullptr) {
+template <typename Exec>
+at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at::Tensor>& batch, int64_t num_batches,
+                        const std::vector<at::Tensor>& extra = {}, std::vector<double>* extra_out = nullptr,
+                        const std::function<void()>& meanwhile = {}) {
   const int64_t n = points.size(0);
   const auto options = points.options();
-  at::Tensor host;  // the rows, then the extra values, in double
+  // The values on the device, in one tensor: with a batch, the rows and the
+  // extra values in double; without one, (lo, hi) and the extra values in
+  // the points' dtype (no conversion kernels on the hot path of every call
+  // and every Lloyd iteration), the count inserted on the host.
+  at::Tensor device_values;
   if (batch.has_value()) {
     const auto as_double = [](const at::Tensor& t) { return t.to(at::kDouble).flatten(); };
     at::Tensor index = batch->unsqueeze(1).expand({n, 3});
@@ -183,11 +194,8 @@ inline at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at:
     at::Tensor counts = at::bincount(*batch, {}, num_batches).unsqueeze(1);
     std::vector<at::Tensor> parts = {at::cat({lo.to(at::kDouble), hi.to(at::kDouble), counts.to(at::kDouble)}, 1).flatten()};
     for (const at::Tensor& e : extra) parts.push_back(as_double(e));
-    host = at::cat(parts).to(at::kCPU);
+    device_values = at::cat(parts);
   } else {
-    // The common case, on the hot path of every call (and of every Lloyd
-    // iteration): no conversion kernels; the count is known here, and the
-    // host converts to double.
     std::vector<at::Tensor> parts;
     if (n > 0) {
       const auto minmax = at::aminmax(points, 0);
@@ -196,15 +204,22 @@ inline at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at:
       parts = {at::zeros({6}, options)};
     }
     for (const at::Tensor& e : extra) parts.push_back(e.flatten());
-    const at::Tensor values = at::cat(parts).to(points.scalar_type()).to(at::kCPU).to(at::kDouble);
-    host = at::cat({values.slice(0, 0, 6), at::full({1}, double(n), values.options()),
-                    values.slice(0, 6, values.numel())});
+    device_values = at::cat(parts).to(points.scalar_type());
   }
-  host = host.contiguous();
-  if (extra_out != nullptr) {
-    const double* values = host.data_ptr<double>();
-    extra_out->assign(values + 7 * num_batches, values + host.numel());
-  }
+  const typename Exec::HostRead reading(device_values);
+  if (meanwhile) meanwhile();
+  const at::Tensor read = reading.wait().contiguous();
+  // The rows and then the extra values, in double (a loop on the host: the
+  // tensor ops it replaced took ~50 us of host time a call).
+  const bool count_on_host = !batch.has_value();
+  const at::Tensor host = at::empty({read.numel() + (count_on_host ? 1 : 0)}, at::TensorOptions(at::kDouble));
+  double* values = host.data_ptr<double>();
+  AT_DISPATCH_FLOATING_TYPES(read.scalar_type(), "torchvor::point_bounds", [&] {
+    const scalar_t* from = read.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < read.numel(); ++i) values[i + (count_on_host && i >= 6 ? 1 : 0)] = double(from[i]);
+  });
+  if (count_on_host) values[6] = double(n);
+  if (extra_out != nullptr) extra_out->assign(values + 7 * num_batches, values + host.numel());
   return host.slice(0, 0, 7 * num_batches).view({num_batches, 7});
 }
 
@@ -216,7 +231,7 @@ template <typename Exec>
 Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
                 int64_t num_batches, double points_per_cell, at::Tensor bounds = {},
                 const at::Tensor& identity = {}) {
-  if (!bounds.defined()) bounds = point_bounds(points, batch, num_batches);
+  if (!bounds.defined()) bounds = point_bounds<Exec>(points, batch, num_batches);
   const double* bounds_ptr = bounds.data_ptr<double>();
 
   // Grid parameters per batch element, built on the host and sent to the

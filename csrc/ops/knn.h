@@ -155,7 +155,7 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   }
   // The value checks travel with the grid's bounds: one device sync.
   std::vector<double> holds;
-  const at::Tensor bounds = point_bounds(points, points_batch, num_batches, values.conditions(), &holds);
+  const at::Tensor bounds = point_bounds<Exec>(points, points_batch, num_batches, values.conditions(), &holds);
   values.verify(holds.data());
   const Grid grid = build_grid<Exec>(points, points_batch, num_batches, points_per_cell_for(k), bounds);
   // Visit queries in grid order: neighbouring queries read the same cells.

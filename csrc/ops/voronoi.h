@@ -802,8 +802,8 @@ void run_speculative_pass(const at::Tensor& points, const at::Tensor& box,
   clip_chunk_up_to_device_count<Exec, io_t>(points, box, batch, cells, neighbors, neighbor_spread, live, out);
 }
 
-// What voronoi_forward puts on the device before it reads the bounds (work
-// that needs none of them, which then runs while the host waits).
+// What voronoi_forward puts on the device while it reads the bounds (work
+// that needs none of them, which then runs while the host takes them in).
 struct Prepared {
   at::Tensor positions;  // (N,) int32: 0, 1, ..., N - 1 (every cell, in grid order)
   at::Tensor status;     // (N,) int8: not_computed_statuses
@@ -978,10 +978,6 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   const at::Tensor box = box_in.contiguous();
   const c10::optional<at::Tensor> batch =
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
-  // Launched before the read of the bounds below, so that the device runs
-  // them while the host gets there and waits.
-  const Prepared prepared{Exec::iota(points.size(0), points.options()),
-                          not_computed_statuses(points.size(0), points.options())};
   // One read from the device for the value checks and the grid: the points'
   // bounds per batch element and the box. Without a batch, the bounds also
   // say whether every point is finite (see point_bounds); with one, that is
@@ -991,7 +987,14 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   std::vector<at::Tensor> to_read = values.conditions();
   to_read.push_back(box);
   std::vector<double> read;
-  const at::Tensor bounds = point_bounds(points, batch, num_boxes, to_read, &read);
+  // The positions and statuses need no bounds: launched after the read's
+  // copy, they run while the host takes the bounds in and launches the grid.
+  // Launched before it, they delayed the copy by their ~52 us of kernels at
+  // 10M points (H100), for which the host then waited too.
+  Prepared prepared;
+  const at::Tensor bounds = point_bounds<Exec>(points, batch, num_boxes, to_read, &read, [&] {
+    prepared = {Exec::iota(points.size(0), points.options()), not_computed_statuses(points.size(0), points.options())};
+  });
   values.verify(read.data());
   check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
   VoronoiOutputs result;
