@@ -1178,6 +1178,34 @@ def test_bad_values_with_batch(device, dtype):
                 torchvor.voronoi(bad, UNIT)
 
 
+def test_box_of_numbers_copied_once(device):
+    """A box given as numbers reaches the op through one device copy per (values,
+    dtype, device), kept for later calls (ops._box_for_call); other boxes are
+    converted on every call. The results equal as_box's either way."""
+    from torchvor.ops import _box_for_call, as_box
+
+    points = torch.rand(20, 3, device=device)
+    first = _box_for_call(points, UNIT, None)
+    assert _box_for_call(points, ([0, 0, 0], [1, 1, 1]), None) is first  # equal numbers, one copy
+    torch.testing.assert_close(first, as_box(points, UNIT), rtol=0, atol=0)
+    assert first.shape == (1, 2, 3) and first.dtype == points.dtype and first.device == points.device
+    wide = _box_for_call(points, ([-1.0, 0, 0], [1.0, 1, 1]), None)
+    assert wide is not first and wide[0, 0, 0].item() == -1.0
+    as_double = _box_for_call(points.double(), UNIT, None)
+    assert as_double is not first and as_double.dtype == torch.float64
+    # Tensors, batches and malformed boxes take as_box on every call.
+    given = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], device=device)
+    assert _box_for_call(points, given, None) is given
+    batch = torch.zeros(20, dtype=torch.int64, device=device)
+    assert _box_for_call(points, UNIT, batch) is not _box_for_call(points, UNIT, batch)
+    with pytest.raises(ValueError, match="box"):
+        _box_for_call(points, ([0, 0], [1, 1]), None)
+    # The op never writes its box: a cached box stays as made after calls.
+    cells = torchvor.voronoi(points, UNIT)
+    assert _box_for_call(points, UNIT, None) is first and first.flatten().tolist() == [0, 0, 0, 1, 1, 1]
+    assert cells.volume.sum().item() == pytest.approx(1.0, rel=1e-5)
+
+
 def test_bad_shapes_and_types(device):
     points = torch.rand(30, 3, device=device)
     for shape in [(30, 2), (30,), (30, 3, 1), (90,)]:

@@ -31,7 +31,7 @@ from typing import Callable, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .ops import BoxLike, CellStatus, VoronoiCells, as_box
+from .ops import BoxLike, CellStatus, VoronoiCells, _box_for_call
 
 FIRST_K = 64        # first-pass neighbours of the first iteration (white noise needs ~60-85)
 MIN_K, MAX_K = 8, 256
@@ -124,7 +124,7 @@ def lloyd(
     """
     _check_arguments(points, iters, tol, k)
     current = points.detach()  # never written in place: each iteration makes a new tensor
-    box_tensor = as_box(current, box, batch).detach()
+    box_tensor = _box_for_call(current, box, batch).detach()
     # `current` (and the batch) in grid order: row i holds the caller's point
     # row_of[i] (None: the caller's order).
     row_of: Optional[torch.Tensor] = None
