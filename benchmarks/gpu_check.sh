@@ -62,6 +62,7 @@ for step in "${@:-smoke}"; do
       python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered --methods torchvor,ckdtree 2>&1 | tee "$OUT/bench_knn.log"
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
+      python3 benchmarks/bench_voronoi.py --device cuda --sizes 100M --kinds blue 2>&1 | tee -a "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
     hard)  # inputs whose cells reach into empty space (clusters with voids, a box 3x wide); HARD_K: settings
            # of TORCHVOR_VERTEX_BALLS_K (10^9 alone: the radius of security, the behaviour before)
