@@ -10,7 +10,7 @@ import torch
 import torchvor
 from torchvor import samples
 from torchvor.cvt import _cvt_energy_op, cvt_energy
-from torchvor.lloyd import FIRST_K, LloydStep, lloyd
+from torchvor.lloyd import LloydStep, lloyd
 from torchvor.ops import _voronoi_in_grid_order
 from torchvor.nn import LloydRelaxation
 
@@ -122,14 +122,42 @@ def test_adaptive_k_shrinks_once_white_noise_becomes_regular(device):
     points = samples.white_noise(2000, seed=6, device=device)
     _, history = lloyd(points, UNIT_BOX, iters=6, return_history=True)
     ks = [step.k for step in history]
-    assert ks[0] == FIRST_K
     # Each k is derived from what the previous iteration's cells needed ...
     for step, following in zip(history, history[1:]):
         assert following.k == max(8, min(256, step.neighbors_needed + 2))
     # ... and relaxed cells need far fewer neighbours than white noise ones.
     assert ks[-1] < ks[1]
-    assert ks[-1] < FIRST_K
+    assert ks[-1] < ks[0]
     assert history[-1].neighbors_needed < history[0].neighbors_needed
+
+
+@pytest.mark.parametrize("kind", ["white", "jittered"])
+def test_first_iteration_takes_the_pilots_k(monkeypatch, device, kind):
+    """With k=None the first iteration's k is the op's pilot's: under
+    TORCHVOR_PILOT_QUANTILE=1 and fewer than 2048 points (every cell in the
+    pilot's sample), the most neighbours a cell needed, capped at the pilot's
+    64, plus 2. Relaxed points thus start small instead of at white noise's k."""
+    monkeypatch.setenv("TORCHVOR_PILOT_QUANTILE", "1")
+    if kind == "white":
+        points = samples.white_noise(1500, seed=30, dtype=torch.float64, device=device)
+    else:
+        points = samples.jittered_grid(1000, amplitude=0.3, seed=31, dtype=torch.float64, device=device)
+    needed = torchvor.voronoi(points, UNIT_BOX, k=256).neighbors
+    expected = max(8, min(64, int(needed.max())) + 2)
+    _, history = lloyd(points, UNIT_BOX, iters=2, return_history=True)
+    assert history[0].k == expected
+    assert history[1].k == max(8, min(256, history[0].neighbors_needed + 2))
+    if kind == "jittered":
+        assert history[0].k < 50  # far below white noise's ~66
+
+
+def test_first_pass_k_is_capped_by_the_cloud(device):
+    """A cloud of fewer points than k asks each cell for all the others: the
+    history reports the k the first pass used."""
+    points = samples.white_noise(6, seed=32, dtype=torch.float64, device=device)
+    for k in (None, 40):
+        _, history = lloyd(points, UNIT_BOX, iters=1, k=k, return_history=True)
+        assert history[0].k == 6
 
 
 def test_fixed_k_gives_the_same_points(device):
@@ -255,10 +283,35 @@ def test_lloyd_step_against_the_voronoi_op_and_tensor_ops(device, dtype, batched
     for name, value in zip(VoronoiCellsFields, outputs):
         assert torch.equal(value, getattr(cells, name)), name
     assert torch.equal(moved, expected_moved)
-    assert measures.device.type == "cpu" and measures.dtype == torch.float64 and measures.shape == (2,)
-    torch.testing.assert_close(measures, expected_measures, rtol=1e-12, atol=0)
+    assert measures.device.type == "cpu" and measures.dtype == torch.float64 and measures.shape == (3,)
+    torch.testing.assert_close(measures[:2], expected_measures, rtol=1e-12, atol=0)
+    assert measures[2].item() == 8  # the first pass's k
     assert histogram.device.type == "cpu" and histogram.dtype == torch.int32
     assert torch.equal(histogram, expected_histogram)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_lloyd_step_without_k_runs_the_pilot(monkeypatch, device, batched):
+    """k=None: the cells of the grid-order voronoi op without k (its pilot's
+    first pass), and the pilot's k in measures[2]. Under
+    TORCHVOR_PILOT_QUANTILE=1 with every cell in the pilot's sample (fewer
+    than 2048 points) that k is the most neighbours a cell needed plus 2."""
+    monkeypatch.setenv("TORCHVOR_PILOT_QUANTILE", "1")
+    if batched:
+        points, box, batch = two_clouds(device, torch.float64)
+    else:
+        points, batch = samples.jittered_grid(1000, amplitude=0.3, seed=26, dtype=torch.float64, device=device), None
+        box = unit_box_tensor(torch.float64, device)
+    moved, *outputs, order, measures, histogram = torch.ops.torchvor.lloyd_step(points, box, batch, None, 1, 80)
+    expected_moved, cells, expected_order, expected_measures, expected_histogram = expected_step(
+        points, box, batch, None, 1, 80)
+    assert torch.equal(order, expected_order)
+    for name, value in zip(VoronoiCellsFields, outputs):
+        assert torch.equal(value, getattr(cells, name)), name
+    assert torch.equal(moved, expected_moved)
+    torch.testing.assert_close(measures[:2], expected_measures, rtol=1e-12, atol=0)
+    assert torch.equal(histogram, expected_histogram)
+    assert measures[2].item() == max(8, min(64, int(cells.neighbors.max())) + 2)
 
 
 def test_lloyd_step_histogram_bins_edges(device):
@@ -281,7 +334,7 @@ def test_lloyd_step_empty_and_bad_inputs(device):
     moved, volume, centroid, second_moment, status, neighbors, order, measures, histogram = (
         torch.ops.torchvor.lloyd_step(empty, box, None, 8, 1, 16))
     assert moved.shape == (0, 3) and order.shape == (0,) and volume.shape == (0,)
-    assert measures.tolist() == [0.0, 0.0] and histogram.tolist() == [0] * 16
+    assert measures.tolist() == [0.0, 0.0, 0.0] and histogram.tolist() == [0] * 16
     points = samples.white_noise(50, seed=24, device=device)
     step = torch.ops.torchvor.lloyd_step
     with pytest.raises(ValueError, match="sample_stride must be >= 1"):
@@ -303,6 +356,7 @@ def test_lloyd_step_opcheck(device):
                               (points, unit_box_tensor(dtype, device), None, 12, 2, 32))
         points, boxes, batch = two_clouds(device, dtype)
         torch.library.opcheck(torch.ops.torchvor.lloyd_step.default, (points, boxes, batch, 12, 1, 64))
+        torch.library.opcheck(torch.ops.torchvor.lloyd_step.default, (points, boxes, batch, None, 1, 64))
     torch.library.opcheck(torch.ops.torchvor.lloyd_step.default,
                           (torch.empty(0, 3, device=device), unit_box_tensor(torch.float32, device), None, 8, 1, 8))
 

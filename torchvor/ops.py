@@ -373,7 +373,7 @@ def _lloyd_step_fake(points, box, batch, k, sample_stride, histogram_bins, memor
     cells_and_order = _voronoi_cells_grid_order_fake(points, box, batch, k, memory_budget)
     # The measures and the histogram are read to the host inside the op.
     return (points.new_empty((points.shape[0], 3)), *cells_and_order,
-            torch.empty((2,), dtype=torch.float64), torch.empty((histogram_bins,), dtype=torch.int32))
+            torch.empty((3,), dtype=torch.float64), torch.empty((histogram_bins,), dtype=torch.int32))
 
 
 @torch.library.register_fake("torchvor::voronoi_cells_grid_order")

@@ -86,7 +86,8 @@ using LloydStepOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tens
 // status read when no pass follows the first (LaunchOnOutputs).
 template <typename Exec>
 LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tensor& box_in,
-                                    const c10::optional<at::Tensor>& batch_in, int64_t k, int64_t sample_stride,
+                                    const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k,
+                                    int64_t sample_stride,
                                     int64_t histogram_bins, int64_t memory_budget) {
   check_lloyd_step_inputs(sample_stride, histogram_bins);
   const at::Tensor points = points_in.contiguous();
@@ -129,7 +130,11 @@ LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tenso
   };
   const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, true, launch_tail);
   const at::Tensor read = summary_read->wait();
-  const at::Tensor measures = read.slice(0, 0, 2).clone();
+  // The first pass's k joins the measures on the host (the pilot's choice,
+  // where k was None: torchvor.lloyd's history reports it).
+  at::Tensor measures = at::empty({3}, at::TensorOptions().dtype(at::kDouble));
+  measures.slice(0, 0, 2).copy_(read.slice(0, 0, 2));
+  measures.data_ptr<double>()[2] = static_cast<double>(cells.first_pass_k);
   const at::Tensor histogram = read.slice(0, 2).view(at::kInt).slice(0, 0, histogram_bins).clone();
   const auto& [volume, centroid, second_moment, status, neighbors] = cells.cells;
   return {moved, volume, centroid, second_moment, status, neighbors, cells.order, measures, histogram};

@@ -316,7 +316,8 @@ using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor,
 // position with `order`, (N,) int64, the caller's row of each position.
 struct VoronoiOutputs {
   CallerOutputs cells;
-  at::Tensor order;  // undefined unless grid_order
+  at::Tensor order;          // undefined unless grid_order
+  int64_t first_pass_k = 0;  // the first pass's k (the caller's or the pilot's, capped by the largest cloud); 0: no pass
 };
 
 // Work that a call launches on its outputs before the op returns
@@ -819,8 +820,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);
   PositionOutputs out = poisoned_outputs<io_t>(prepared.status, points.options());
+  int64_t first_pass_k = 0;
   const auto finished = [&] {
     VoronoiOutputs outputs = finish_outputs<Exec, io_t>(out, points.options(), grid_order);
+    outputs.first_pass_k = first_pass_k;
     if (on_outputs) on_outputs(outputs);
     return outputs;
   };
@@ -879,6 +882,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     neighbor_spread = run_pilot<Exec, io_t>(positions, largest_cloud, run, out).neighbor_spread;
   }
   PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
+  first_pass_k = pass.k;
   at::Tensor pending = positions;
   // The last scan's failed cells, and whether some of them no pass wrote.
   at::Tensor last_failed;
