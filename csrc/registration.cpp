@@ -24,18 +24,18 @@ TORCH_LIBRARY(torchvor, m) {
       "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors, Tensor order)");
-  // One Lloyd iteration: the cells of points (N, 3) as voronoi_cells_grid_order
-  // computes them with first-pass k (None: the pilot's, as there) (volume, centroid, second_moment, status,
-  // neighbors by grid position, and order (N,) int64: row i is the cell of
-  // points[order[i]]), and moved (N, 3), by grid position: each point at its
-  // cell's centroid clamped into its box, or where it was if its cell failed.
-  // measures (3,) float64 on the CPU: the sum of the second moments (the CVT
-  // energy before the move; NaN if a cell failed), the largest squared
-  // displacement over the square of its box's diagonal, and the first pass's
-  // k (the pilot's where k is None; 0 for no points). histogram
-  // (histogram_bins,) int32 on the CPU: bin c counts the rows 0, s, 2s, ...
-  // (s = sample_stride) whose cells needed c neighbours (the last bin also
-  // histogram_bins; more are left out).
+  // One Lloyd iteration on points (N, 3). The cells as voronoi_cells_grid_order
+  // computes them with first-pass k (None: a pilot's, as there): volume,
+  // centroid, second_moment, status and neighbors by grid position, and order
+  // (N,) int64: row i is the cell of points[order[i]]. moved (N, 3), by grid
+  // position: each point at its cell's centroid clamped into its box, or where
+  // it was if its cell failed. measures (3,) float64 on the CPU: the sum of
+  // the second moments (the CVT energy before the move; NaN if a cell
+  // failed), the largest squared displacement over the square of its box's
+  // diagonal, and the first pass's k (the pilot's where k is None; 0 for no
+  // points). histogram (histogram_bins,) int32 on the CPU: bin c counts the
+  // rows 0, s, 2s, ... (s = sample_stride) whose cells needed c neighbours
+  // (the last bin also histogram_bins; more are left out).
   m.def(
       "lloyd_step(Tensor points, Tensor box, Tensor? batch, int? k, int sample_stride, int histogram_bins, "
       "int memory_budget=1073741824) -> (Tensor moved, Tensor volume, Tensor centroid, Tensor second_moment, "

@@ -10,7 +10,7 @@ point set (paper §5.2): white noise needs large neighbourhoods in the first
 iterations, relaxed points small ones. The first iteration takes the k of
 the op's pilot sample (as ``voronoi`` does by default), so that points that
 are already relaxed do not pay for white noise's k (one iteration at 10M blue
-noise on an H100: 67 ms at k=64, ~35 with the pilot's k). Each iteration
+noise on an H100: 67 ms at k=64, 36 with the pilot's k). Each iteration
 measures how many neighbours every cell needed and the next one fetches the
 99th percentile of that plus a small margin, so the few cells that need more
 are recomputed (automatically, by ``voronoi``) instead of all cells fetching

@@ -11,8 +11,7 @@ namespace cpu {
 
 ops::LloydStepOutputs lloyd_step_cpu(const at::Tensor& points, const at::Tensor& box,
                                      const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                                     int64_t sample_stride,
-                                     int64_t histogram_bins, int64_t memory_budget) {
+                                     int64_t sample_stride, int64_t histogram_bins, int64_t memory_budget) {
   return ops::lloyd_step_forward<CpuExec>(points, box, batch, k, sample_stride, histogram_bins, memory_budget);
 }
 

@@ -12,8 +12,7 @@ namespace cuda {
 
 ops::LloydStepOutputs lloyd_step_cuda(const at::Tensor& points, const at::Tensor& box,
                                       const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                                      int64_t sample_stride,
-                                      int64_t histogram_bins, int64_t memory_budget) {
+                                      int64_t sample_stride, int64_t histogram_bins, int64_t memory_budget) {
   // Any CUDA argument routes the call here; a CPU `points` then fails the
   // device check with a clear message instead of a guard error.
   c10::cuda::OptionalCUDAGuard guard;

@@ -87,8 +87,7 @@ using LloydStepOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tens
 template <typename Exec>
 LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tensor& box_in,
                                     const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k,
-                                    int64_t sample_stride,
-                                    int64_t histogram_bins, int64_t memory_budget) {
+                                    int64_t sample_stride, int64_t histogram_bins, int64_t memory_budget) {
   check_lloyd_step_inputs(sample_stride, histogram_bins);
   const at::Tensor points = points_in.contiguous();
   const at::Tensor box = box_in.contiguous();

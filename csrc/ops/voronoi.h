@@ -317,7 +317,7 @@ using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor,
 struct VoronoiOutputs {
   CallerOutputs cells;
   at::Tensor order;          // undefined unless grid_order
-  int64_t first_pass_k = 0;  // the first pass's k (the caller's or the pilot's, capped by the largest cloud); 0: no pass
+  int64_t first_pass_k = 0;  // the caller's k or the pilot's, capped by the largest cloud; 0: no pass ran
 };
 
 // Work that a call launches on its outputs before the op returns
