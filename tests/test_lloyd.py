@@ -131,6 +131,13 @@ def test_adaptive_k_shrinks_once_white_noise_becomes_regular(device):
     assert history[-1].neighbors_needed < history[0].neighbors_needed
 
 
+def pilot_k_at_quantile_one(neighbors: torch.Tensor) -> int:
+    """The pilot's first-pass k under TORCHVOR_PILOT_QUANTILE=1 when every cell
+    is in its sample (fewer than 2048 points): the most neighbours a cell
+    needed, capped at the pilot's own k (64), plus 2, at least 8."""
+    return max(8, min(64, int(neighbors.max())) + 2)
+
+
 @pytest.mark.parametrize("kind", ["white", "jittered"])
 def test_first_iteration_takes_the_pilots_k(monkeypatch, device, kind):
     """With k=None the first iteration's k is the op's pilot's: under
@@ -143,9 +150,8 @@ def test_first_iteration_takes_the_pilots_k(monkeypatch, device, kind):
     else:
         points = samples.jittered_grid(1000, amplitude=0.3, seed=31, dtype=torch.float64, device=device)
     needed = torchvor.voronoi(points, UNIT_BOX, k=256).neighbors
-    expected = max(8, min(64, int(needed.max())) + 2)
     _, history = lloyd(points, UNIT_BOX, iters=2, return_history=True)
-    assert history[0].k == expected
+    assert history[0].k == pilot_k_at_quantile_one(needed)
     assert history[1].k == max(8, min(256, history[0].neighbors_needed + 2))
     if kind == "jittered":
         assert history[0].k < 50  # far below white noise's ~66
@@ -311,7 +317,7 @@ def test_lloyd_step_without_k_runs_the_pilot(monkeypatch, device, batched):
     assert torch.equal(moved, expected_moved)
     torch.testing.assert_close(measures[:2], expected_measures, rtol=1e-12, atol=0)
     assert torch.equal(histogram, expected_histogram)
-    assert measures[2].item() == max(8, min(64, int(cells.neighbors.max())) + 2)
+    assert measures[2].item() == pilot_k_at_quantile_one(cells.neighbors)
 
 
 def test_lloyd_step_histogram_bins_edges(device):
