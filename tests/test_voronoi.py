@@ -1408,14 +1408,24 @@ def test_compile_voronoi(device, dtype, gen):
             torch.testing.assert_close(a, b)
 
 
-def assert_cells_unchanged(cells, default_cells, dtype):
-    """The same statuses and neighbour counts; the integrals bit for bit in
-    float64, up to a summation order in float32 (equally far neighbours
-    clipped in another order). The second moment's terms cancel the most:
-    over 60 such pairs of 5000 cells (pilot quantiles 0.5 and 1 against the
-    default) its largest relative difference was 1.08e-5, the volume's 2.8e-6."""
-    for name in ("status", "neighbors"):
-        assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
+def assert_cells_unchanged(cells, default_cells, dtype, same_passes=True):
+    """The same statuses; in float64 the same neighbour counts and integrals,
+    bit for bit. In float32 the integrals agree up to rounding: equally far
+    neighbours may be clipped in another order, and with
+    `same_passes=False` (another first pass's k) a cell may end in another
+    pass, as in assert_same_cloud: a thread cell of the first tier (vertices
+    held to 18 mantissa bits, CompactTriangles) in one run and a retry of a
+    higher tier in the other. Its neighbour count may then move by one (the
+    radius of security comes from the vertices). Over 200 pairs of 5000
+    cells (pilot quantiles 0.5 and 1 against the default, seeds 100-199),
+    4 cells counted one neighbour more or fewer; the largest relative
+    differences were 1.18e-5 for the second moment (its terms cancel the
+    most) and 4.2e-6 for the volume."""
+    assert torch.equal(default_cells.status, cells.status), "status"
+    if dtype == torch.float32 and not same_passes:
+        assert int((default_cells.neighbors - cells.neighbors).abs().max()) <= 1, "neighbors"
+    else:
+        assert torch.equal(default_cells.neighbors, cells.neighbors), "neighbors"
     for name, rtol in (("volume", 1e-5), ("centroid", 1e-5), ("second_moment", 5e-5)):
         if dtype == torch.float64:
             assert torch.equal(getattr(default_cells, name), getattr(cells, name)), name
@@ -1450,15 +1460,17 @@ def test_pilot_quantile_changes_no_result(monkeypatch, device, dtype, gen, quant
     """TORCHVOR_PILOT_QUANTILE (benchmarks/ab_env.py) sets the share of the
     pilot's cells that the default first-pass k covers (0.98; values outside
     (0, 1] keep it). Another k retries other cells, but each cell stops at the
-    same neighbour: the same cells, bit for bit in float64 (in float32 the
+    same neighbour: the same cells, bit for bit in float64. In float32 the
     grid follows k, and equally far neighbours may be clipped in another
-    order, as in test_grid_density_changes_no_result)."""
+    order, as in test_grid_density_changes_no_result; a cell may also end in
+    another pass, whose vertices round otherwise, and count one neighbour
+    more or fewer (seen in CI: TORCHVOR_TEST_SEED=2526752964 with 0.5)."""
     points = rand(5000, gen, dtype, device)
     default_cells = torchvor.voronoi(points, UNIT)
     monkeypatch.setenv("TORCHVOR_PILOT_QUANTILE", quantile)
     cells = torchvor.voronoi(points, UNIT)
     check_global(cells, points, [box_of(points, UNIT)], dtype)
-    assert_cells_unchanged(cells, default_cells, dtype)
+    assert_cells_unchanged(cells, default_cells, dtype, same_passes=False)
 
 
 # -------------------------------------------------------- CPU / CUDA parity
