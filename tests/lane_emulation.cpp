@@ -5,6 +5,11 @@
 // on 8, 16 and 32 lanes and checks that every cell gets the thread cell's
 // (convex_cell.h) status and neighbour count, and its volume up to rounding,
 // also where the cell is finished by its vertices' balls (vertex_balls.h).
+// One difference is by design: the thread cell's plane array always holds
+// the six box planes, the cooperative cell's only the planes that bound it
+// (compact_planes drops the others), so at one MAX_PLANES a cell away from
+// the box may overflow the thread cell's array and not the lanes' (see
+// compare).
 // Built and run by tests/test_lane_emulation.py:
 //   lane_emulation SEED CELLS   (exit status 0: every cell agreed)
 #include <algorithm>
@@ -172,6 +177,14 @@ struct SortedGrid {
   }
 };
 
+// The same status and neighbour count, and for a computed cell the same
+// volume up to rounding (the lanes sum in another order).
+bool same_cell(const core::CellIntegrals<float>& got, const core::CellIntegrals<float>& expected) {
+  const bool same_volume =
+      expected.status != core::kSuccess || std::fabs(got.volume - expected.volume) <= 1e-4f * expected.volume;
+  return got.status == expected.status && got.neighbors == expected.neighbors && same_volume;
+}
+
 // Cells `first` .. first + cells - 1 by N lanes against one thread; returns the
 // cells that disagree. With `grid` (its points), the cells whose k
 // neighbours run out are finished by their vertices' balls, in `box`.
@@ -203,10 +216,26 @@ int compare(const char* name, const Points& points, int first, int cells, int k,
       });
     }
     for (std::thread& lane : lanes) lane.join();
+    // Where the thread cell ran out of planes, the lanes may go on: they keep
+    // no box plane that does not bound the cell, the thread cell keeps all
+    // six. They then agree with a thread cell of six more planes (the same
+    // vertices' room), or run out of planes themselves, never sooner. Seen
+    // with seed 3284062866: cell 0 (26 faces, none on the box) overflowed
+    // the thread cell at neighbour 38 and ran out of its 40 neighbours on
+    // the lanes.
+    const bool thread_out_of_planes = expected.status == core::kTooManyPlanes;
+    core::CellIntegrals<float> roomier{};
+    if (thread_out_of_planes) {
+      core::ConvexCell<float, MAX_PLANES + core::kBoxPlanes, kMaxTriangles> roomier_cell;
+      roomier = core::compute_cell(roomier_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box,
+                                   tolerance, 0, true, finish);
+    }
     for (int l = 0; l < N; ++l) {
-      const bool same_volume = expected.status != core::kSuccess ||
-                               std::fabs(got[l].volume - expected.volume) <= 1e-4f * expected.volume;
-      if (got[l].status != expected.status || got[l].neighbors != expected.neighbors || !same_volume) {
+      const bool agrees = same_cell(got[l], expected) ||
+                          (thread_out_of_planes &&
+                           ((got[l].status == core::kTooManyPlanes && got[l].neighbors >= expected.neighbors) ||
+                            same_cell(got[l], roomier)));
+      if (!agrees) {
         std::printf("%s, %d lanes, %d planes: cell %d, lane %d: status %d (thread %d), neighbours %d (%d), "
                     "volume %g (%g)\n", name, N, MAX_PLANES, seed, l, got[l].status, expected.status,
                     got[l].neighbors, expected.neighbors, double(got[l].volume), double(expected.volume));
