@@ -360,7 +360,7 @@ def test_compact_triangles_match_full(monkeypatch, device, gen, seed, kind):
     oracle, with the same statuses and the same integrals up to rounding, at
     any offset and scale (small: a box of 1e-6, large: of 1e8 at -3e8). The
     radius of security comes from the rounded vertices, so a neighbour count
-    may differ by one, rarely. (The oracle's Qhull works to absolute
+    may differ by one, rarely (by two where a neighbour has an exact copy). (The oracle's Qhull works to absolute
     tolerances: not at those two scales.)"""
     monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, on either device
     dtype = torch.float32
@@ -384,7 +384,12 @@ def test_compact_triangles_match_full(monkeypatch, device, gen, seed, kind):
         check_against_oracle(compact, points, lohi, pick_cells(points, 40, gen, *lohi), RTOL[dtype])
     assert_same_integrals(compact, full, dtype, offset=lo)
     differ = (compact.neighbors - full.neighbors).abs()
-    assert differ.max() <= 1 and (differ > 0).float().mean() < 0.01
+    # A neighbour and its exact copy come in a row, and the copy is skipped
+    # but counted: where one run stops at the first of the pair and the
+    # other clips it, the count moves by two (TORCHVOR_TEST_SEED=9713905,
+    # duplicates: 42 with full triangles, 44 with compact ones).
+    most = 2 if kind == "duplicates" else 1
+    assert differ.max() <= most and (differ > 0).float().mean() < 0.01
     if kind == "white":
         assert not torch.equal(full.volume, compact.volume)  # the compact form was used
 
