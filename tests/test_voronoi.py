@@ -360,8 +360,9 @@ def test_compact_triangles_match_full(monkeypatch, device, gen, seed, kind):
     oracle, with the same statuses and the same integrals up to rounding, at
     any offset and scale (small: a box of 1e-6, large: of 1e8 at -3e8). The
     radius of security comes from the rounded vertices, so a neighbour count
-    may differ by one, rarely (by two where a neighbour has an exact copy). (The oracle's Qhull works to absolute
-    tolerances: not at those two scales.)"""
+    may differ by one, rarely (by two where a neighbour has an exact copy).
+    (The oracle's Qhull works to absolute tolerances: not at those two
+    scales.)"""
     monkeypatch.setenv("TORCHVOR_CELLS", "thread")  # every pass, on either device
     dtype = torch.float32
     box, lo = UNIT, 0.0
