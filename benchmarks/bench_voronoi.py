@@ -7,9 +7,9 @@ kNN part, recovery and failure counts, volume error, memory, and voro++
                                        [--kinds white,perturbed,blue] [--k 0,64] [--lloyd-iteration]
 
 By default each point set gets two rows: the op's own first-pass k (k=None:
-a pilot sample picks it; what a caller who passes no k gets, and what issue
-5's targets are measured with), then a fixed k by kind (DEFAULT_K), whose
-rows also time the kNN alone and count the recovered cells.
+a pilot sample picks it; what a caller who passes no k gets), then a fixed k
+by kind (DEFAULT_K), whose rows also time the kNN alone and count the
+recovered cells.
 """
 from __future__ import annotations
 
@@ -96,9 +96,9 @@ def main():
              f"{args.memory_budget_mib} MiB); knn = torchvor.knn(points, k) alone, an estimate of the kNN part.",
              "k = pilot: the op's default (k=None), its first-pass k picked by a pilot sample; knn and recovery "
              "are then not shown (the op does not report the k it picked).",
-             "recovery = cells that needed more than the first-pass k neighbours (neighbors > k), recomputed "
+             "recovery = cells that needed more than the first-pass k neighbours (neighbors_needed > k), recomputed "
              "by the op; failures = final status not SUCCESS/DUPLICATE; nbrs = 50/99/100th percentiles of "
-             "`neighbors`; |Σvol−1| in float64 over non-failed cells.",
+             "`neighbors_needed`; |Σvol−1| in float64 over non-failed cells.",
              "memory of the first (cold) call, which also gives the statistics: " + common.MEMORY_NOTE[device.type]]
     if with_voro:
         notes.append("voro++ = pyvoro2's native compute_box_standard call (single-threaded, volumes only, "
@@ -130,16 +130,16 @@ def main():
                 status = cells.status
                 failed = (status != torchvor.CellStatus.SUCCESS) & (status != torchvor.CellStatus.DUPLICATE)
                 volume_error = abs(float(cells.volume[~failed].double().sum()) - 1.0)
-                recovered = "—" if k is None else int((cells.neighbors > k).sum())
+                recovered = "—" if k is None else int((cells.neighbors_needed > k).sum())
                 row = [label, common.npoints_label(count), k or "pilot", common.fmt_s(seconds),
                        common.fmt_s(knn_seconds),
                        f"{count / seconds / 1e6:.2f}", recovered, int(failed.sum()),
-                       f"{volume_error:.1e}", "/".join(map(str, common.neighbor_percentiles(cells.neighbors))),
+                       f"{volume_error:.1e}", "/".join(map(str, common.neighbor_percentiles(cells.neighbors_needed))),
                        common.fmt_mib(memory.peak), common.fmt_mib(memory.work)]
                 if args.lloyd_iteration:
-                    step, how = common.lloyd_iteration_fn(points, k=k)
+                    step = lambda: torchvor.lloyd(points, common.UNIT_BOX, iters=1, k=k)  # noqa: E731
                     row.append(common.fmt_s(common.time_fn(step, device, args.warmup, args.repeats)))
-                    notes.append(f"1 Lloyd iter = {how}, median like voronoi.")
+                    notes.append("1 Lloyd iter = torchvor.lloyd(points, box, iters=1, k=k), median like voronoi.")
                 if with_voro:
                     if isinstance(voro, dict):
                         core = voro.get("core")

@@ -280,23 +280,11 @@ def measure_memory(fn: Callable[[], object], device: torch.device) -> tuple[Memo
 POINT_KINDS = ("white", "uniform", "perturbed", "jittered", "blue")
 
 
-def get_lloyd():
-    """torchvor.lloyd.lloyd, or None (with the reason) when it cannot be imported."""
-    try:
-        from torchvor.lloyd import lloyd
-    except Exception as error:  # noqa: BLE001 - a missing or broken module both mean "not available"
-        return None, f"{type(error).__name__}: {error}"
-    return lloyd, ""
-
-
 def make_points(kind: str, n: int, *, seed: int, dtype: torch.dtype, device: torch.device,
                 cache_dir: Path, blue_iters: int = 100) -> tuple[torch.Tensor, str]:
-    """(points, label) of a point set in the unit cube; grids give about n points.
-
-    'blue' is white noise after ``blue_iters`` Lloyd iterations, cached in cache_dir
-    by (kind, n, seed, dtype, iterations); without torchvor.lloyd it falls back to
-    jittered_grid (label 'blue->jittered').
-    """
+    """(points, label) of a point set of ``torchvor.samples`` in the unit cube; grids give
+    about n points. 'blue' (``samples.blue_noise``: white noise after ``blue_iters`` Lloyd
+    iterations) is cached in cache_dir by (n, seed, dtype, iterations)."""
     if kind in ("white", "uniform"):
         return samples.white_noise(n, seed=seed, dtype=dtype, device=device), kind
     if kind == "perturbed":
@@ -309,36 +297,16 @@ def make_points(kind: str, n: int, *, seed: int, dtype: torch.dtype, device: tor
     if path.exists():
         log(f"blue noise n={n}: loaded from {path}")
         return torch.load(path, weights_only=True).to(device), kind
-    lloyd, why = get_lloyd()
-    if lloyd is None:
-        log(f"NOTE: torchvor.lloyd unavailable ({why}); 'blue' uses jittered_grid instead")
-        return samples.jittered_grid(n, seed=seed, dtype=dtype, device=device), "blue->jittered"
     log(f"blue noise n={n}: {blue_iters} Lloyd iterations on {device} ...")
     start = time.perf_counter()
-    points = samples.white_noise(n, seed=seed, dtype=dtype, device=device)
-
-    def report(iteration, _points, _cells):
-        if (iteration + 1) % 10 == 0:
-            log(f"  iteration {iteration + 1}/{blue_iters}, {time.perf_counter() - start:.1f} s")
-
-    points = as_points(lloyd(points, UNIT_BOX, iters=blue_iters, callback=report))
+    points = samples.blue_noise(n, iters=blue_iters, seed=seed, dtype=dtype, device=device)
     synchronize(device)
     log(f"blue noise n={n}: generated in {time.perf_counter() - start:.1f} s, cached to {path}")
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(f".tmp{os.getpid()}")
-    torch.save(points.detach().cpu(), partial)
+    torch.save(points.cpu(), partial)
     os.replace(partial, path)
     return points, kind
-
-
-def as_points(result) -> torch.Tensor:
-    """The point tensor of a lloyd() result (a tensor, or a tuple/NamedTuple starting with it,
-    or an object with a ``points`` attribute)."""
-    if isinstance(result, torch.Tensor):
-        return result
-    if hasattr(result, "points"):
-        return result.points
-    return result[0]
 
 
 def neighbor_percentiles(neighbors: torch.Tensor, qs=(0.5, 0.99, 1.0)) -> list[int]:
@@ -346,24 +314,6 @@ def neighbor_percentiles(neighbors: torch.Tensor, qs=(0.5, 0.99, 1.0)) -> list[i
     counts = torch.bincount(neighbors.long().clamp(min=0)).cumsum(0).cpu()
     total = int(counts[-1])
     return [int(torch.searchsorted(counts, max(1, math.ceil(q * total)))) for q in qs]
-
-
-def lloyd_step(points: torch.Tensor, box=UNIT_BOX, k: Optional[int] = None) -> torch.Tensor:
-    """One manual Lloyd iteration: every point moves to its cell's centroid
-    (cells that could not be computed keep their point)."""
-    cells = torchvor.voronoi(points, box, k=k, on_failure="flag")
-    ok = (cells.status == torchvor.CellStatus.SUCCESS).unsqueeze(1)
-    return torch.where(ok, cells.centroid, points)
-
-
-def lloyd_iteration_fn(points: torch.Tensor, box=UNIT_BOX,
-                       k: Optional[int] = None) -> tuple[Callable[[], torch.Tensor], str]:
-    """(fn, how): fn runs one Lloyd iteration from ``points`` with first-pass ``k``
-    (torchvor.lloyd(iters=1) when available, else :func:`lloyd_step`)."""
-    lloyd, _ = get_lloyd()
-    if lloyd is not None:
-        return (lambda: as_points(lloyd(points, box, iters=1, k=k))), "torchvor.lloyd(iters=1, k=k)"
-    return (lambda: lloyd_step(points, box, k)), "voronoi + move to centroid (torchvor.lloyd unavailable)"
 
 
 def npoints_label(n: int) -> str:
@@ -411,21 +361,3 @@ def print_results(title: str, headers: list[str], rows: list[list], notes: list[
         for note in dict.fromkeys(notes):  # in order, without repeats
             print(f"- {note}")
     print(flush=True)
-
-
-def sweep_environment(variable: str, settings: list, cases: list[tuple[str, Callable[[], object]]],
-                      measure: Callable[[Callable[[], object]], list]) -> list[list]:
-    """Rows [case, setting, *measure(call)] for each (case, call) of `cases` under each
-    setting of the environment variable `variable` (None: unset, shown as "default"),
-    printed as they come. The variable is unset afterwards."""
-    rows = []
-    for name, call in cases:
-        for setting in settings:
-            if setting is None:
-                os.environ.pop(variable, None)
-            else:
-                os.environ[variable] = str(setting)
-            rows.append([name, "default" if setting is None else setting, *measure(call)])
-            print(" | ".join(str(x) for x in rows[-1]), flush=True)
-        os.environ.pop(variable, None)
-    return rows
