@@ -11,8 +11,8 @@
 #define TV_HD __host__ __device__ __forceinline__
 #elif defined(__GNUC__)
 // Inlined on the host too, as nvcc inlines on the device: GCC does not
-// always inline the small helpers of the hot loops, and forcing it made the
-// CPU kNN 6% faster (100K white noise, k=64, 2 cores: 191 -> 179 ms).
+// always inline the small helpers of the hot loops, and forcing it speeds
+// up the CPU kNN.
 #define TV_HD inline __attribute__((always_inline))
 #else
 #define TV_HD inline
@@ -55,8 +55,8 @@ TV_HD Vec3<T> load_vec3(const T* p) { return {p[0], p[1], p[2]}; }
 // copy of the clip loop (cpu/isa.h), each site its own way. kNN promises
 // bitwise identical distances (hence identical tie-breaking) on CPU and
 // CUDA, and the start tetrahedron's choice (det_rn) must come out alike on
-// both (a kNN search inside that loop, in an experiment, ranked a neighbour
-// differently from the kNN pass: benchmarks/NOTES.md). On the host an empty
+// both (a kNN search compiled inside that loop would otherwise rank a
+// neighbour differently from the kNN pass). On the host an empty
 // asm that takes the product in a register keeps it from being fused into
 // an addition.
 template <typename F>

@@ -38,8 +38,7 @@ struct alignas(16) CachedVertex {
 // one 16-byte record in float32 (one vector store; the corners and the
 // position are read together by the integrals). |vertex|^2 is recomputed
 // where needed rather than stored: the thread cell's speed is bound by how
-// much cell state its threads keep in the L1 cache (benchmarks/NOTES.md),
-// and arithmetic is cheap beside a local-memory word.
+// much cell state its threads keep in the L1 cache, and arithmetic is cheap beside a local-memory word.
 template <typename T>
 struct alignas(16) DualTriangle {
   Vec3<T> position;
@@ -92,8 +91,7 @@ TV_HD Vec3<T> cramer_point(const Plane<T>& pa, const Plane<T>& pb, const Plane<T
 // normals of about |n|^3 angle^2, and its rounding, a few eps |n|^3, scales
 // the vertex by up to eps / angle^2: off its own planes and across others
 // that nearly meet there, so that the cell's faces join wrongly (float64
-// cells of test_tight_clusters 1e-11 to 4e-10 off in volume at spread 1e-6,
-// angles ~3e-6; benchmarks/NOTES.md). Where b and c are within |n_a| / 2 of
+// cells of tight clusters off in volume). Where b and c are within |n_a| / 2 of
 // a, they are taken relative to a (normals and offsets minus a's: the same
 // point, the same determinant), whose differences from nearly equal normals
 // are exact. Not otherwise: a normal much shorter than a's (a nearer
@@ -138,10 +136,7 @@ TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance)
 // reverse-edge search costs the warp's largest region squared. Four
 // bisectors whose neighbours surround the seed bound a tetrahedron that
 // already holds the cell: 4 vertices, every face a bisector, nothing to
-// carve. A model of the clips (benchmarks/NOTES.md, 100K blue noise, warps
-// of 32 cells in grid order) put the warps' summed largest region squared
-// at 213 against 484 from the box, and the cutting clips a cell at 10.3
-// against 13.9.
+// carve: the clips then remove smaller regions, and fewer of them cut.
 //
 // The four: the nearest neighbour and the triple of the next six whose
 // tetrahedron surrounds the seed best. With unit directions u_i, the
@@ -153,11 +148,10 @@ TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance)
 // cell), start from the box. The choice is computed with separately rounded
 // products (det_rn), so that the CPU and the GPU take the same.
 //
-// Only the thread cell starts so (ConvexCell::kTetrahedronStart). On the
-// H100 its clip kernel got 16% faster on 10M blue noise (35.5 -> 29.7 ms);
-// the warp cell's (CooperativeCell), which clips at a cost per clip that
-// hardly depends on the removed region, got 22% slower on white noise and
-// 19% on perturbed grids (benchmarks/NOTES.md).
+// Only the thread cell starts so (ConvexCell::kTetrahedronStart): the warp
+// cell (CooperativeCell) clips at a cost per clip that hardly depends on the
+// removed region, and the start's own cost made it slower
+// (docs/performance.md).
 constexpr int kStartCandidates = 7;   // the nearest neighbour and the next six
 constexpr double kStartMinSurround = 0.05;
 
@@ -292,8 +286,8 @@ TV_HD bool has_edge(uint32_t corners, uint32_t code) {
 // planes, and enter only planes they leave: then they form disjoint cycles.
 // None has one edge (an edge joins two planes) or two (edges a -> b and
 // b -> a of removed triangles are interior, not boundary edges), so up to 5
-// edges make a single cycle. Longer boundaries are walked. (The walk was a
-// tenth of the warp cell's stall samples on white noise, ncu, H100.)
+// edges make a single cycle. Longer boundaries are walked (a walk is a
+// visible share of the warp cell's stalls).
 TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
 
 // Volume, first moment and second moment (integral of |x|^2) of a cell,
@@ -349,9 +343,8 @@ struct CellMoments {
   // kinds of plane a cell has, without a division: a bisector
   // (bisector_plane: offset |normal|^2 / 2, so the foot is -normal / 2) or a
   // box face (box_plane: a unit normal, so the foot is -offset * normal).
-  // A bisector with |normal| = 1 has offset 1/2: either formula holds. (A
-  // branch to the division for planes of neither kind made the warp cell's
-  // clip kernel 7% slower, H100: benchmarks/NOTES.md.)
+  // A bisector with |normal| = 1 has offset 1/2: either formula holds. (No
+  // branch to a division for planes of neither kind: it slows the warp cell.)
   TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
     const bool unit_normal = dot(p.normal, p.normal) == T(1);
     return (unit_normal ? -p.offset : T(-0.5)) * p.normal;
@@ -471,17 +464,13 @@ struct TriangleSlots {
 // each coordinate is rounded to 18 mantissa bits (to nearest, ties to even)
 // and its 5 low bits hold one corner's plane id.
 // Why: the thread cell's speed is bound by how much cell state its threads
-// keep in the L1 cache, and the triangles are most of it. 16 -> 12 bytes
-// took the blue-noise clip kernel from 27.03 to 25.04 ms at 10M points, and
-// the call from 37.70 to 35.63 ms; perturbed grids' clip 110.1 -> 97.2 ms
-// (H100, benchmarks/NOTES.md).
-// The cost: vertices held to 2^-19 relative instead of float32's 2^-24.
-// Float32 volumes of 200K white-noise cells then differ from float64's by at
-// most 5.6e-6 relative instead of 8.8e-7 (median 2.8e-7 against 1.2e-7).
-// Ties away from zero would push every vertex outwards (the volumes summed
-// 8e-8 too large). A cell in units of a power of two, which frees an
-// exponent bit and keeps 19 mantissa bits, was 4% slower than this (the
-// conversions) for 2x the precision (benchmarks/experiments).
+// keep in the L1 cache, and the triangles are most of it.
+// The cost: vertices held to 2^-19 relative instead of float32's 2^-24, so
+// float32 volumes differ a few times more from float64's (docs/design.md).
+// Ties away from zero would push every vertex outwards (the volumes would
+// sum too large). A cell in units of a power of two, which frees an
+// exponent bit for a 19th mantissa bit, costs more in conversions than it
+// gains (docs/performance.md).
 // Reading a coordinate back is one mask; its rounding cannot make a finite
 // vertex non-finite short of FLT_MAX (then it reads as Inf, and the clip
 // fails as for any non-finite vertex).
@@ -579,9 +568,7 @@ struct ConvexCell {
   // its four bisectors are planes 6-9. Planes 0-5, the box's faces, are left
   // unwritten: no vertex of the tetrahedron lies on them and clips add only
   // bisectors, so no triangle ever names them and plane() never reads them.
-  // Their 24 words a cell were stores to local memory that nothing read
-  // again; without them the blue-noise clip kernel took 0.8% less time
-  // (10M points, H100, benchmarks/NOTES.md).
+  // Their 24 words a cell would be stores to local memory that nothing reads.
   TV_HD void init_tetrahedron(const StartTetrahedron<T>& start, T relative_tolerance, int band_widenings) {
     init_settings(relative_tolerance, band_widenings);
     num_planes = kBoxPlanes + 4;
@@ -682,10 +669,7 @@ struct ConvexCell {
     // of the next), and the new plane comes from registers. On the GPU a
     // plane load is a scattered local access (local memory interleaves the
     // threads' 4-byte words, so one thread's plane spans up to three
-    // sectors): the fan's three plane loads a vertex were ~30% of the
-    // blue-noise clip kernel's L1 sector traffic (ncu, H100). Timed alone,
-    // at full residency, it changed nothing (benchmarks/NOTES.md); it stays
-    // as the simpler loop.
+    // sectors), so loading each plane once cuts the fan's L1 traffic.
     typename Mask::Cursor holes = clipped.cursor();
     uint8_t from = start;
     Plane<T> from_plane = plane(from);
@@ -802,8 +786,7 @@ struct ConvexCell {
       const uint32_t corners = removed[i];
       // Bit e: edge e's reverse is in a removed triangle (the edge is
       // interior). One pass over the removed triangles tests all three
-      // edges, one load each (a pass per edge: clip kernel 4.51 against 3.95
-      // ms, 1M blue noise, H100; benchmarks/NOTES.md).
+      // edges, one load each (cheaper than a pass per edge).
       uint32_t reverse[3];
       TV_UNROLL
       for (int e = 0; e < 3; ++e) reverse[e] = uint32_t(corner(corners, (e + 1) % 3)) | uint32_t(corner(corners, e)) << 8;

@@ -49,8 +49,8 @@ template <typename T, int MAX_PLANES, int MAX_TRIANGLES, typename LanesT>
 struct CooperativeCell {
   using Scalar = T;
   using Lanes = LanesT;
-  // Always from the box: a tetrahedron start made this cell's clip kernel
-  // 22% slower on white noise (H100; see start_tetrahedron).
+  // Always from the box: a tetrahedron start slows this cell (see
+  // start_tetrahedron).
   static constexpr bool kTetrahedronStart = false;
   using Arrays = CooperativeCellArrays<T, MAX_PLANES, MAX_TRIANGLES>;
   static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");

@@ -111,8 +111,8 @@ template <> struct HeapKey<double> {
 // Max-heap of candidate keys: the root is the worst of the k best so far.
 // Four children per node: half the depth of a binary heap, and the children
 // of a node share a cache line on the host. The larger-child choice is a
-// select, not a branch; replacing the root costs ~30% less than with a
-// binary heap (CPU, 1M points, k=35).
+// select, not a branch; replacing the root costs less than with a binary
+// heap.
 template <typename T>
 struct NeighborHeap {
   static constexpr int32_t kArity = 4;
@@ -142,9 +142,9 @@ struct NeighborHeap {
 
   // Place `item` at position e of the heap [0, n) and restore heap order.
   // A node with all its children (every node but the last inner one) takes
-  // them without a test each: a per-child bounds test made each level of
-  // the GPU's sift three branches, and replacing the root was about 40% of
-  // the kNN kernel's instructions (ncu, H100, 1M blue noise, k=24).
+  // them without a test each: a per-child bounds test makes each level of
+  // the GPU's sift three branches, and replacing the root is a large share
+  // of the kNN kernel's instructions.
   TV_HD void sift_down(int32_t e, int32_t n, HeapKey<T> item) {
     for (int32_t first = kArity * e + 1; first < n; first = kArity * e + 1) {
       int32_t child = first;
@@ -330,8 +330,7 @@ struct Rings {
   // most, 1: at least), for the row's cells within reach. A product by 1 / h
   // instead of the division by h: the division is ~8 instructions on the
   // GPU, twice a row of the search, and the kNN kernel is bound by the
-  // instructions it issues (kNN kernel 7.63 -> 7.52 ms, 10M blue noise, k=19,
-  // H100: benchmarks/NOTES.md). The two differ by at most ~3 units in the
+  // instructions it issues. The two differ by at most ~3 units in the
   // last place in float32 (2^-22 of u), so u moved outwards by 2^-20 of
   // itself bounds the quotient's cell. The search's result is unchanged: the
   // bound only prunes, and errs on the safe side.

@@ -19,8 +19,8 @@
 namespace torchvor {
 namespace core {
 
-// Largest n ranked (the stack array's size). Measured faster than
-// std::sort up to k = 90 (1M kNN: 3.02 -> 2.58 s); quadratic beyond.
+// Largest n ranked (the stack array's size): ranking beats std::sort for
+// the k of most searches, and is quadratic beyond.
 constexpr int32_t kMaxRankedKeys = 128;
 
 inline bool cpu_has_avx2() {

@@ -95,11 +95,8 @@ TV_HD bool may_cut(const Cell& cell, Vec3<T> r, T r2) {
 // The rows run along the axis that makes them cheapest (each costs a pass
 // over the vertices). A hull cell of points in a box 3x wider than them
 // reaches the box's wall; along the wall's normal its balls span a cell or
-// two of the grid, across it all of it, and rows along that normal (x) were
-// ~100x as many: 1M such points took 974 ms on an H100, 315 ms with rows
-// along the longest span. Clusters with voids, whose balls span about as
-// many cells along every axis, took 270 ms with rows along x and 355 ms
-// along the longest span (benchmarks/NOTES.md).
+// two of the grid, across it all of it, and rows along that normal would be
+// ~100x as many as along the longest span.
 template <typename Cell, typename io_t, typename T>
 TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, int32_t seed_index,
                                 Vec3<T> seed, T listed_dist2, bool& clipped) {

@@ -32,8 +32,7 @@ struct CellIntegrals {
 // A cell's neighbours as its lanes read them: lane l reads neighbour base + l
 // (the index, then the coordinates), and step n takes neighbour n from lane
 // n % kCount. A warp so has 32 neighbours' two dependent loads in flight at
-// once; read one at a time, they were a fifth of the warp cell's stall
-// samples on white noise (ncu, H100). A single lane reads each neighbour at
+// once, where one at a time they stall it. A single lane reads each neighbour at
 // its step, as before.
 template <typename Lanes, typename io_t, typename T>
 struct NeighborReader {

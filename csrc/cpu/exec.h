@@ -13,6 +13,7 @@
 #include "../core/common.h"
 #include "../core/device_count.h"
 #include "../core/lanes.h"
+#include "../ops/options.h"
 #include "isa.h"
 #include "large_buffers.h"
 
@@ -22,9 +23,10 @@ namespace cpu {
 // The loops over cells and queries run only the items that
 // core::items_to_run says are valid (a speculative pass's list: its count is
 // in host memory here), so that at::parallel_for splits those evenly between
-// the threads; over all launched slots, one thread got every valid one
-// (100K white noise, 2 cores: 1012 against 951 ms).
+// the threads rather than all launched slots (one thread could get every
+// valid one).
 struct CpuExec {
+  using HostExec = CpuExec;  // where the double-double last resort runs
   using Lanes = core::SingleLane;  // the lanes of one cooperative item
   // A cell reads its neighbour list in one cache line or two: row-major.
   static constexpr bool kColumnMajorNeighbors = false;
@@ -97,9 +99,9 @@ struct CpuExec {
   // (isa.h), where a * b + c may round once, as on the GPU. Not for code that
   // relies on separately rounded products (double-double's Dekker split).
   template <typename Functor>
-  static void for_each_cell(int64_t launched, int64_t /*k*/, const Functor& functor) {
+  static void for_each_cell(int64_t launched, int64_t /*k*/, const ops::Options& options, const Functor& functor) {
     const int64_t n = core::items_to_run(functor, launched);
-    const Isa isa = cpu_isa();
+    const Isa isa = cpu_isa(options.cpu_baseline_isa);
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
       run_range(isa, begin, end, functor);
     });
@@ -126,8 +128,7 @@ struct CpuExec {
 
   // functor(i, arena): `bytes` of working memory for item i (one lane),
   // reused by the next item of the same thread. (The kNN search runs here;
-  // an AVX2 copy of it measured no faster: 100K points, k=64, 165-170 ms
-  // either way.)
+  // an AVX2 copy of it measured no faster.)
   template <typename Functor>
   static void for_each_with_scratch(int64_t launched, int64_t bytes, const Functor& functor) {
     const int64_t n = core::items_to_run(functor, launched);

@@ -1,6 +1,5 @@
 // The hot CPU loop (clipping cells) compiled a second time for AVX2 and FMA,
 // chosen at run time, in a build that otherwise targets baseline x86-64.
-// Measured on 2 cores, 100K white noise: 493 -> 441 ms per voronoi call.
 //
 // Why an attribute on a loop, not a translation unit built with -mavx2: the
 // linker keeps one copy of each inline function and template instantiation
@@ -9,23 +8,19 @@
 // `flatten` inlines the whole call tree of the loop body into it, and a call
 // that is not inlined goes to the ordinary baseline function.
 //
-// TORCHVOR_CPU_ISA=baseline (read on every call) forces the baseline loop:
-// the tests compare the two, and a user can rule the AVX2 copy out.
+// Options::cpu_baseline_isa forces the baseline loop: the tests compare the two.
 #pragma once
 
 #include <cstdint>
-#include <cstdlib>
-#include <cstring>
 
 namespace torchvor {
 namespace cpu {
 
 enum class Isa { kBaseline, kAvx2Fma };
 
-// What run_range will use on this CPU.
-inline Isa cpu_isa() {
-  const char* forced = std::getenv("TORCHVOR_CPU_ISA");
-  if (forced != nullptr && std::strcmp(forced, "baseline") == 0) return Isa::kBaseline;
+// What run_range will use on this CPU, unless `force_baseline`.
+inline Isa cpu_isa(bool force_baseline) {
+  if (force_baseline) return Isa::kBaseline;
 #if defined(__x86_64__) && defined(__GNUC__)
   static const bool has_avx2_fma = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
   return has_avx2_fma ? Isa::kAvx2Fma : Isa::kBaseline;

@@ -3,12 +3,11 @@
 // translation units of their own, one a pair of point and cell precisions
 // (clip_float.cu, clip_float_in_double.cu, clip_double.cu), so that the
 // build compiles them in parallel with each other and with the rest of
-// voronoi.cu; voronoi.cu declares them extern. They were most of the
-// one voronoi.cu's compile time, and the GPU build is on the critical path of
-// every device check (benchmarks/gpu_check.sh).
+// voronoi.cu, which declares them extern: they are most of the CUDA
+// build's compile time.
 #pragma once
 
-#include "../ops/voronoi.h"
+#include "../ops/clip_pass.h"
 #include "exec.cuh"
 
 // TORCHVOR_CLIP_CHUNK_TIER(extern, io_t, T) declares the instantiation for
@@ -17,14 +16,16 @@
   EXTERN template void torchvor::ops::clip_chunk_tier<torchvor::cuda::CudaExec, io_t, T>(                   \
       const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,              \
       const at::Tensor& cells, const at::Tensor& neighbors, int tier, const torchvor::ops::Grid* vertex_balls, \
-      c10::optional<double> neighbor_spread, torchvor::ops::PositionOutputs& out)
+      c10::optional<double> neighbor_spread, const torchvor::ops::Options& options,                          \
+      torchvor::ops::PositionOutputs& out)
 
 // The speculative retry pass's clip (ops::run_speculative_pass) for points of io_t.
 #define TORCHVOR_CLIP_CHUNK_UP_TO_DEVICE_COUNT(EXTERN, io_t)                                            \
   EXTERN template void torchvor::ops::clip_chunk_up_to_device_count<torchvor::cuda::CudaExec, io_t>(     \
       const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,          \
       const at::Tensor& cells, const at::Tensor& neighbors, c10::optional<double> neighbor_spread,      \
-      const torchvor::core::DeviceCount& live, torchvor::ops::PositionOutputs& out)
+      const torchvor::core::DeviceCount& live, const torchvor::ops::Options& options,                  \
+      torchvor::ops::PositionOutputs& out)
 
 // Every clip that ops::voronoi_passes runs on the GPU.
 #define TORCHVOR_CLIP_CHUNK_TIERS(EXTERN)                \

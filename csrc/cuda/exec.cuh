@@ -6,7 +6,6 @@
 #include <c10/cuda/CUDAException.h>
 
 #include <algorithm>
-#include <cstdlib>
 
 #include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
@@ -14,6 +13,8 @@
 #include "../core/common.h"
 #include "../core/device_count.h"
 #include "../core/lanes.h"
+#include "../cpu/exec.h"
+#include "../ops/options.h"
 
 namespace torchvor {
 namespace cuda {
@@ -109,14 +110,14 @@ struct MaxOfInt32 {
 
 struct CudaExec {
   using Lanes = core::WarpLanes;  // the lanes of one cooperative item
+  using HostExec = cpu::CpuExec;  // where the double-double last resort runs
 
   // Output tensors: the caching allocator.
   static at::Tensor empty(at::IntArrayRef sizes, const at::TensorOptions& options) {
     return at::empty(sizes, options);
   }
 
-  // 128 threads per block: a sweep of 32-256 threads and of residency caps
-  // changed nothing or made it slower (benchmarks/NOTES.md).
+  // 128 threads per block: other sizes measured no faster (docs/performance.md).
   static constexpr int kThreads = 128;
   // Neighbour n of cell t at n * chunk + t: a warp's 32 cells read and write
   // one contiguous line per neighbour instead of 32 scattered ones.
@@ -141,8 +142,8 @@ struct CudaExec {
     return reinterpret_cast<unsigned long long*>(counter.data_ptr<int64_t>());
   }
 
-  // 0, 1, ..., n - 1 as int32. (at::arange's kernel took 95 us for 10M on
-  // an H100, where a store a thread takes ~15.)
+  // 0, 1, ..., n - 1 as int32, a store a thread (at::arange's kernel is
+  // several times slower).
   static at::Tensor iota(int64_t n, const at::TensorOptions& options) {
     const at::Tensor out = at::empty({n}, options.dtype(at::kInt));
     for_each(n, IotaFunctor{out.data_ptr<int32_t>()});
@@ -240,25 +241,19 @@ struct CudaExec {
 
   // A warp per cell (CooperativeCell) or a thread per cell (ConvexCell).
   // A pass over few cells (retries, the pilot) takes as long as its slowest
-  // cell, and a warp cuts that latency (H100, jittered grid, k=48, clip
-  // kernel thread / warp, benchmarks/crossover.py: 1024 cells 0.245 / 0.048
-  // ms, 16384: 0.278 / 0.251, 65536: 0.844 / 0.958).
+  // cell, and a warp cuts that latency; up to kCooperativeCellsUpTo cells,
+  // where the two cross over.
   //
   // Over many cells, a thread per cell wins where the cells need about as
   // many neighbours as each other, and a warp where that varies widely: the
   // 32 threads of a warp run until its slowest cell is done, testing
   // neighbours against vertices one at a time, while a warp cell spreads
   // each test over its lanes. The spread of the neighbours the pilot's cells
-  // needed (standard deviation / mean, voronoi.h's pilot) tells the two
-  // apart; k does not (perturbed grids and white noise both get k >= 40).
-  // Voronoi wall time, thread / warp, at the pilot's k, H100 (crossover.py
-  // --op kinds, 05fc6fc; spread, ratio at 1M, ratio at 10M): blue noise
-  //   0.097, 0.40; Lloyd iterate 4 of white noise 0.158, 0.59; jittered grid
-  //   0.35 0.190, 0.77; Lloyd iterate 1 0.228 / 0.215, 0.85 / 0.81;
-  //   perturbed grid 0.238 / 0.224, 0.98 / 0.92; jittered 0.6 0.258 /
-  //   0.239, 1.03 / 1.02; jittered 0.8 0.278 / 0.268, 1.09 / 1.08; white
-  //   noise 0.294 / 0.291, 1.20 / 1.16; clusters 0.308-0.318, 1.48-2.32 at 1M.
-  // Near 0.25 the two differ by a few percent either way.
+  // needed (standard deviation / mean, pilot.h) tells the two apart; k does
+  // not (perturbed grids and white noise both get k >= 40). Blue noise
+  // (spread ~0.1) and jittered or perturbed grids run faster with threads,
+  // white noise (~0.29) and clusters (~0.31) with warps; near
+  // kCooperativeCellsFromSpread the two are within a few percent.
   // Without a spread (no pilot ran: a caller's k below 40, which
   // cells_need_spread leaves to k) k decides: from 40, warps, as the
   // irregular kinds' k is above and blue noise's (19-24) below.
@@ -272,8 +267,7 @@ struct CudaExec {
   }
   // Whether a pass with the caller's k would be decided by k alone, where a
   // pilot's spread would decide better. The pilot (one pass over ~1000 cells
-  // and a read) then runs; its cost was not measured apart, and the passes
-  // it decides take 15 ms or more at 1M.
+  // and a read) then runs, small next to the passes it decides.
   static bool cells_need_spread(int64_t cells, int64_t k) {
     return cells > kCooperativeCellsUpTo && k >= kCooperativeCellsFromK;
   }
@@ -281,10 +275,8 @@ struct CudaExec {
   // functor(i, lanes, arrays): the 32 lanes of a warp (core::WarpLanes) per
   // item, sharing one Arrays in shared memory; up to 4 warps a block, fewer
   // when their arrays pass the 48 KB a block gets without opting in. The
-  // warps claim one item at a time (for_each_cooperative_claimed_kernel):
-  // with a block per 4 items, a block held its shared memory until its
-  // slowest cell was done (10M, H100: clip kernels of a perturbed grid,
-  // k=48, 134.1 -> 126.1 ms; white noise, k=64, 177.4 -> 170.2 ms).
+  // warps claim one item at a time (for_each_cooperative_claimed_kernel), so
+  // that no block holds its shared memory while its slowest cell finishes.
   template <typename Arrays, typename Functor>
   static void for_each_cooperative(int64_t n, const Functor& functor) {
     if (n == 0) return;
@@ -308,9 +300,8 @@ struct CudaExec {
 
   // The same for kNN queries: a pass over few queries (a retry pass inside
   // voronoi) waits on one thread's serial cell and point loads; a warp per
-  // query has them in flight together (H100, 1M jittered grid, k=28, kNN
-  // kernel thread / warp: 1024 queries 0.206 / 0.034 ms, 16384: 0.195 /
-  // 0.139, 65536: 0.233 / 0.491; benchmarks/crossover.py).
+  // query has them in flight together. Up to kCooperativeQueriesUpTo
+  // queries, where the two cross over.
   static constexpr int64_t kCooperativeQueriesUpTo = 16384;
   static bool cooperative_queries(int64_t queries) { return queries <= kCooperativeQueriesUpTo; }
 
@@ -332,37 +323,23 @@ struct CudaExec {
   }
 
   // One thread per cell (ConvexCell), with fewer threads resident than the
-  // GPU could hold. Each thread's cell lives in local memory (a ~2 KB stack
-  // frame at tier 0 in float32, ~1 KB of it touched on blue noise). At full
-  // residency (1024 threads an SM, 135K on an H100) the frames outgrow the
-  // L2 cache (50 MB): the clip kernel streamed local memory from DRAM at
-  // half its bandwidth, and more loads in flight did not help. Capped at
-  // kCellFramesPerSm bytes of stack frames an SM (the kernel's own frame
-  // size, cudaFuncGetAttributes), the frames stay in cache. 1M blue noise,
-  // k=24, H100: blocks of 128 an SM 8 (the full residency) / 6 / 4 / 3 / 2 /
-  // 1: clip kernel 7.79 / 6.38 / 4.67 / 4.49 / 5.33 / 8.42 ms.
-  // Passes of cells that need more neighbours run best with fewer threads
-  // resident (likely because such cells grow more vertices and touch more
-  // of their frame; not profiled): from a pass's k of kLargeCellsFromK,
-  // three quarters of those blocks (rounded; measured in float32 only, 4 ->
-  // 3 blocks). Voronoi wall time, thread cells, blocks 4 / 3 an SM, H100
-  // (a23ea16; interleaved: 10M perturbed grid k=48 150.5 / 142.3 ms, 2
-  // blocks 148.9; one after the other: jittered grid 0.45 k=41 141.2 /
-  // 132.3, 1M jittered 0.25 k=28 10.37 / 9.65, Lloyd iterate 2 of white
-  // noise k=30 11.17 / 10.45, perturbed k=43 18.31 / 17.42; against: Lloyd
-  // iterates 1 and 2 at k=48 14.18 / 15.33 and 11.02 / 11.24, and blue noise
-  // k=24 4.56 / 4.67, 10M 40.3 / 42.0, whose cells need ~14 neighbours
-  // against 23-31; benchmarks/NOTES.md).
-  // TORCHVOR_CELL_BLOCKS_PER_SM overrides the cap (benchmarks).
-  // The warps claim 32 cells at a time (for_each_claimed_kernel): with each
-  // thread taking cells a grid apart, the kernel waited on its slowest warps'
-  // last rounds (10M blue noise, k=24, H100: clip kernel 29.6 -> 28.0 ms).
+  // GPU could hold. Each thread's cell lives in local memory (a stack frame
+  // of a few KB). At full residency the frames outgrow the L2 cache and the
+  // clip kernel streams local memory from DRAM; capped at kCellFramesPerSm
+  // bytes of stack frames an SM (the kernel's own frame size,
+  // cudaFuncGetAttributes), the frames stay in cache. Passes of cells that
+  // need more neighbours run best with fewer threads resident (such cells
+  // grow more vertices and touch more of their frame): from a pass's k of
+  // kLargeCellsFromK, three quarters of those blocks (rounded).
+  // Options::cell_blocks_per_sm overrides the cap (benchmarks).
+  // The warps claim 32 cells at a time (for_each_claimed_kernel), so that the
+  // kernel does not wait on its slowest warps' last rounds.
   static constexpr int64_t kCellFramesPerSm = 1024 * 1024;
   static constexpr int64_t kLargeCellsFromK = 28;
 
   // functor(i) for i in [0, n), cells whose pass reads k neighbours each.
   template <typename Functor>
-  static void for_each_cell(int64_t n, int64_t k, const Functor& functor) {
+  static void for_each_cell(int64_t n, int64_t k, const ops::Options& options, const Functor& functor) {
     if (n == 0) return;
     const auto kernel = for_each_claimed_kernel<Functor>;
     // The kernel's frame and the blocks an SM holds depend only on the kernel
@@ -384,7 +361,7 @@ struct CudaExec {
     const int64_t sms = sm_count(device);
     int64_t per_sm = kCellFramesPerSm / (kThreads * residency.frame_bytes);
     if (k >= kLargeCellsFromK) per_sm = (3 * per_sm + 2) / 4;
-    if (const char* chosen = std::getenv("TORCHVOR_CELL_BLOCKS_PER_SM")) per_sm = std::atoi(chosen);
+    if (options.cell_blocks_per_sm > 0) per_sm = options.cell_blocks_per_sm;
     per_sm = std::max<int64_t>(1, std::min<int64_t>(per_sm, residency.most));
     const int64_t blocks = std::min<int64_t>((n + kThreads - 1) / kThreads, sms * per_sm);
     const auto stream = at::cuda::getCurrentCUDAStream();

@@ -120,19 +120,16 @@ at::Tensor cell_ids(const at::Tensor& points, const c10::optional<at::Tensor>& b
 
 // The points in cell order and where each cell's run of them ends, in one
 // pass over the sorted order:
-// - out[i] = points[index[i]], rows of 3 coordinates (index_select on the
-//   (N, 3) tensor gathered one element a thread, its index loaded for each:
-//   349 us for 10M float32 points on an H100);
+// - out[i] = points[index[i]], rows of 3 coordinates (a row a thread, its
+//   index loaded once, where index_select loads it for each element);
 // - ends[c + 1] = one past the last sorted point of cell c, for every cell
 //   that holds points (the others keep their 0), written by the last point
 //   of each run of equal ids: one plain store a cell. Their running maximum
 //   is the cells' starts, as an empty cell starts where the last cell before
 //   it with points ends.
-// Counting each cell's points by atomic adds in the cell-id kernel instead
-// took that kernel 214 us at 10M blue-noise points, against 59 without them;
-// the ends in a kernel of their own took 49 us more, a pass over the sorted
-// ids that the gather, bound by its scattered reads of the points, absorbs
-// (H100, benchmarks/NOTES.md).
+// This replaces counting each cell's points by atomic adds, and a kernel of
+// its own for the ends: the gather, bound by its scattered reads of the
+// points, absorbs the pass over the sorted ids.
 template <typename T>
 struct GatherByCellFunctor {
   const T* points;            // (N, 3)
@@ -209,8 +206,8 @@ at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at::Tensor
   const typename Exec::HostRead reading(device_values);
   if (meanwhile) meanwhile();
   const at::Tensor read = reading.wait().contiguous();
-  // The rows and then the extra values, in double (a loop on the host: the
-  // tensor ops it replaced took ~50 us of host time a call).
+  // The rows and then the extra values, in double (a loop on the host, cheaper
+  // than tensor ops for a few values).
   const bool count_on_host = !batch.has_value();
   const at::Tensor host = at::empty({read.numel() + (count_on_host ? 1 : 0)}, at::TensorOptions(at::kDouble));
   double* values = host.data_ptr<double>();
@@ -298,20 +295,12 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   return grid;
 }
 
-// Grid density for a k-nearest-neighbour query. Small cells (about k / 16
-// points) let the distance pruning of the ring search scan little more than
-// the k-ball itself. Measured (benchmarks/NOTES.md): CPU 3.45 us/query at k=35
-// against 5.0 with k / 4; H200 1M k=35 5.3 ms against 7.8 with k / 4.
-// At least 1.5 points a cell: on 10M blue noise (k=19, H100) the first
-// pass's kNN kernel took 7.68 ms at 1.5 against 7.98 at 2 (the floor before),
-// and the clip kernel gave back the gain below that (1.25: 7.58 and +0.14
-// ms; 1.0: 7.44 and +0.16). Perturbed grids and white noise (k >= 40) were
-// unchanged.
-// TORCHVOR_POINTS_PER_CELL_SCALE multiplies it (benchmarks/sweep_points_per_cell.py).
-inline double points_per_cell_for(int64_t k) {
-  double scale = 1.0;
-  if (const char* chosen = std::getenv("TORCHVOR_POINTS_PER_CELL_SCALE")) scale = std::atof(chosen);
-  if (!(scale > 0.0)) scale = 1.0;
+// Grid density for a k-nearest-neighbour query, in points a grid cell, times
+// `scale` (Options::points_per_cell_scale). Small cells (about k / 16 points)
+// let the distance pruning of the ring search scan little more than the
+// k-ball itself; below 1.5 points a cell the clip gives back what the kNN
+// gains (docs/design.md).
+inline double points_per_cell_for(int64_t k, double scale) {
   return scale * std::min(32.0, std::max(1.5, double(k) / 16.0));
 }
 

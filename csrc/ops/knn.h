@@ -5,8 +5,6 @@
 
 #include <ATen/ATen.h>
 
-#include <cstdlib>
-#include <cstring>
 #include <tuple>
 #include <type_traits>
 
@@ -14,23 +12,10 @@
 #include "../core/grid_search.h"
 #include "checks.h"
 #include "grid.h"
+#include "options.h"
 
 namespace torchvor {
 namespace ops {
-
-// Which implementation runs a pass: one thread per item, or a group of lanes
-// per item (cooperative). The backend chooses (Exec::cooperative_queries
-// by the pass's size, Exec::cooperative_cells by its size and k); the
-// environment variable `variable` set to "thread" or "cooperative" (read on
-// every call) overrides that for every pass, so that the tests run both on
-// each device and A/B timings need no second build. Other values: the
-// backend's choice.
-inline bool use_cooperative(const char* variable, bool backend_default) {
-  const char* forced = std::getenv(variable);
-  if (forced != nullptr && std::strcmp(forced, "cooperative") == 0) return true;
-  if (forced != nullptr && std::strcmp(forced, "thread") == 0) return false;
-  return backend_default;
-}
 
 // Query t of `order` -> its k nearest points, written to row `row(t)` of
 // (dist2, index). The heap lives in a k-slot scratch array that the executor
@@ -86,18 +71,18 @@ struct KnnFunctor {
   TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * row_stride; }
 };
 // Past 128 bytes of kernel parameter nvcc reads a functor's fields at each
-// use instead of once at the kernel's entry (ops/voronoi.h's
-// VertexBallsGridMember); this one is 120.
+// use instead of once at the kernel's entry (clip_pass.h's
+// VertexBallsGridMember).
 static_assert(sizeof(KnnFunctor<double, int64_t>) <= 128, "the kNN functor must stay within 128 bytes");
 
 // Launches `launched` (a KnnFunctor, or one wrapped in UpToDeviceCount)
 // over `count` queries: a group of lanes per query or a thread per query
-// (Exec's choice by the count, or TORCHVOR_KNN).
+// (Exec's choice by the count, unless `forced`).
 template <typename Exec, typename Functor, typename Launched>
-void launch_knn(int64_t count, int64_t k, const Launched& launched) {
+void launch_knn(int64_t count, int64_t k, Implementation forced, const Launched& launched) {
   const int64_t cooperative_bytes = Functor::template cooperative_scratch_bytes<typename Exec::Lanes>(k);
   if (Exec::fits_cooperative_scratch(cooperative_bytes) &&
-      use_cooperative("TORCHVOR_KNN", Exec::cooperative_queries(count))) {
+      use_cooperative(forced, Exec::cooperative_queries(count))) {
     Exec::for_each_cooperative_with_scratch(count, cooperative_bytes, launched);
   } else {
     Exec::for_each_with_scratch(count, Functor::scratch_bytes(k), launched);
@@ -106,15 +91,15 @@ void launch_knn(int64_t count, int64_t k, const Launched& launched) {
 
 // Runs the search for `count` queries. `dist2` may be undefined when only
 // indices are wanted. Results are (rows, k) row-major, or (k, rows)
-// column-major when `column_major` (coalesced on GPUs). TORCHVOR_KNN=thread
-// or =cooperative overrides the backend's choice of implementation. With
-// kUpToDeviceCount, only the queries that `live` says are valid run (the
-// speculative retry pass of voronoi.h; its own kernels).
+// column-major when `column_major` (coalesced on GPUs). `forced` overrides
+// the backend's choice of implementation. With kUpToDeviceCount, only the
+// queries that `live` says are valid run (the speculative retry pass of
+// recovery.h; its own kernels).
 template <typename Exec, typename T, typename index_t, bool kUpToDeviceCount = false>
 void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_order,
              const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
-             bool exclude_self, bool row_by_query, bool column_major, at::Tensor& dist2, at::Tensor& index,
-             const core::DeviceCount& live = {}) {
+             bool exclude_self, bool row_by_query, bool column_major, Implementation forced,
+             at::Tensor& dist2, at::Tensor& index, const core::DeviceCount& live = {}) {
   using Functor = KnnFunctor<T, index_t>;
   const int64_t rows = index.numel() / k;
   const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
@@ -124,9 +109,9 @@ void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_or
                         static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
                         row_stride, column_stride};
   if constexpr (kUpToDeviceCount) {
-    launch_knn<Exec, Functor>(count, k, core::up_to_device_count(functor, live));
+    launch_knn<Exec, Functor>(count, k, forced, core::up_to_device_count(functor, live));
   } else {
-    launch_knn<Exec, Functor>(count, k, functor);
+    launch_knn<Exec, Functor>(count, k, forced, functor);
   }
 }
 
@@ -136,6 +121,7 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
                                                const c10::optional<at::Tensor>& points_batch_in,
                                                const c10::optional<at::Tensor>& queries_batch_in,
                                                bool exclude_self) {
+  const Options options = Options::from_environment();
   const auto contiguous = [](const c10::optional<at::Tensor>& t) {
     return t.has_value() ? c10::optional<at::Tensor>(t->contiguous()) : c10::nullopt;
   };
@@ -157,7 +143,8 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   std::vector<double> holds;
   const at::Tensor bounds = point_bounds<Exec>(points, points_batch, num_batches, values.conditions(), &holds);
   values.verify(holds.data());
-  const Grid grid = build_grid<Exec>(points, points_batch, num_batches, points_per_cell_for(k), bounds);
+  const Grid grid = build_grid<Exec>(points, points_batch, num_batches,
+                                     points_per_cell_for(k, options.points_per_cell_scale), bounds);
   // Visit queries in grid order: neighbouring queries read the same cells.
   // When the queries are the points, the grid's sorted copy holds them in
   // that order already (sequential reads).
@@ -172,7 +159,7 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
                             queries_are_points,
                             queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
                             order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
-                            /*column_major=*/false, dist2, index);
+                            /*column_major=*/false, options.knn, dist2, index);
   });
   return {dist2, index};
 }

@@ -64,8 +64,8 @@ struct LloydMoveFunctor {
 // needed c neighbours, the last bin also those that needed exactly
 // num_bins; counts past that or below 0 are left out (as torch.histc over
 // [0, num_bins] with num_bins bins). torchvor.lloyd takes the next step's k
-// from its quantile: a strided sample, because ~10 busy bins contended by
-// every cell took 0.1 ms of the GPU at 1M points.
+// from its quantile: a strided sample, as ~10 busy bins contended by every
+// cell would serialise the atomic adds.
 struct StridedHistogramFunctor {
   const int32_t* needed;  // (N,) the neighbours each cell needed
   int64_t stride;

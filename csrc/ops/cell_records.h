@@ -1,0 +1,213 @@
+// The outputs of the Voronoi passes, by grid position, and their way to the
+// caller's rows.
+#pragma once
+
+#include <ATen/ATen.h>
+
+#include <algorithm>
+#include <cstddef>
+#include <functional>
+#include <tuple>
+
+#include "../core/common.h"
+#include "../core/status.h"
+
+namespace torchvor {
+namespace ops {
+
+// One cell's outputs as one record (32 bytes in float32, 48 in float64), so
+// that the gather to the caller's rows (ToRowsFunctor) reads one or two
+// memory sectors a cell instead of one an output array.
+template <typename io_t>
+struct alignas(16) CellRecord {
+  io_t volume;
+  io_t centroid[3];
+  io_t second_moment;
+  int32_t num_neighbors;
+  int8_t status;
+};
+
+// The outputs by grid position (the numbering the passes work in): one
+// CellRecord<io_t> a position, in a byte tensor, and the caller's row of
+// each position. The statuses are kept twice: a byte a cell for the scan
+// after each pass (which then reads a byte, not a record, a cell), and in
+// the records for the gather to the caller's rows (one sector a cell).
+struct PositionOutputs {
+  at::Tensor records;          // (N, sizeof(CellRecord<io_t>)) uint8
+  at::Tensor status;           // (N,) int8, the records' statuses again
+  at::Tensor row_of_position;  // (N,) int32
+  at::Tensor position_of_row;  // (N,) int32, its inverse: the first pass's status read computes it
+
+  template <typename io_t>
+  CellRecord<io_t>* data() const {
+    return reinterpret_cast<CellRecord<io_t>*>(records.data_ptr<uint8_t>());
+  }
+  // (N,) int32 view of the records' neighbour counts.
+  template <typename io_t>
+  at::Tensor num_neighbors() const {
+    return records.view(at::kInt).select(1, offsetof(CellRecord<io_t>, num_neighbors) / sizeof(int32_t));
+  }
+};
+
+template <typename io_t>
+at::Tensor empty_records(int64_t n, const at::TensorOptions& options) {
+  return at::empty({n, int64_t(sizeof(CellRecord<io_t>))}, options.dtype(at::kByte));
+}
+
+// The record of a cell that no pass wrote: "not computed" (NaN, status -1,
+// 0 neighbours). Only the status bytes start so (poisoned_outputs); a pass
+// writes the record of each of its cells, and after the passes the records
+// of the cells still not computed are set to this (PoisonUnwrittenFunctor),
+// which is cheaper than poisoning every record up front.
+template <typename io_t>
+TV_HD CellRecord<io_t> not_computed_record() {
+  const io_t zero = io_t(0);
+  const io_t nan = zero / zero;
+  return {nan, {nan, nan, nan}, nan, 0, core::kNotComputed};
+}
+
+// The cells of `cells` whose status is still "not computed" get the record
+// that says so.
+template <typename io_t>
+struct PoisonUnwrittenFunctor {
+  const int32_t* cells;
+  const int8_t* status;        // (N,) by position
+  CellRecord<io_t>* records;   // (N,) by position
+
+  TV_HD void operator()(int64_t i) const {
+    const int32_t position = cells[i];
+    if (status[position] == core::kNotComputed) records[position] = not_computed_record<io_t>();
+  }
+};
+
+// position_of_row[row_of_position[p]] = p for the rows in [first_row,
+// end_row): the inverse of the grid order, over every position once per
+// range of rows. The writes scatter, and a range that the GPU's L2 cache
+// holds (Exec::cached_scatter_bytes) lets each sector fill there before it
+// goes to memory.
+struct InvertOrderFunctor {
+  const int32_t* row_of_position;
+  int32_t* position_of_row;
+  int32_t first_row;
+  int32_t end_row;
+
+  TV_HD void operator()(int64_t p) const {
+    const int32_t row = row_of_position[p];
+    if (row >= first_row && row < end_row) position_of_row[row] = static_cast<int32_t>(p);
+  }
+};
+
+// The inverse of the grid order (N,) int32 from `row_of_position`, in
+// ranges of rows that fit the cache (InvertOrderFunctor): only the GPU
+// splits large inputs. `test_range_bytes` > 0 (tests only) sets the bytes a
+// range writes, so that small inputs take several ranges too.
+template <typename Exec>
+at::Tensor invert_order(const at::Tensor& row_of_position, int64_t test_range_bytes) {
+  const int64_t n = row_of_position.size(0);
+  const at::Tensor position_of_row = Exec::empty({n}, row_of_position.options());
+  const int64_t range_bytes = test_range_bytes > 0 ? test_range_bytes : Exec::cached_scatter_bytes();
+  const int64_t rows_per_range = std::max<int64_t>(1, range_bytes / int64_t(sizeof(int32_t)));
+  for (int64_t first = 0; first < n; first += rows_per_range) {
+    Exec::for_each(n, InvertOrderFunctor{row_of_position.data_ptr<int32_t>(), position_of_row.data_ptr<int32_t>(),
+                                         static_cast<int32_t>(first),
+                                         static_cast<int32_t>(std::min(n, first + rows_per_range))});
+  }
+  return position_of_row;
+}
+
+// The caller's row `row` of the five outputs from the record at its grid
+// position, in one kernel. It gathers (scattered reads, rows written in
+// order) rather than scatters: partial-sector writes of five arrays are slow
+// once the outputs outgrow the L2 cache, and only InvertOrderFunctor
+// scatters, a single int32 array. Without `position_of_row`, row p is
+// position p (outputs in grid order).
+template <typename io_t>
+struct ToRowsFunctor {
+  const int32_t* position_of_row;  // (N,), or nullptr: the identity
+  const CellRecord<io_t>* records;
+  io_t* volume;         // (N,)
+  io_t* centroid;       // (N, 3)
+  io_t* second_moment;  // (N,)
+  int8_t* status;       // (N,)
+  int32_t* num_neighbors;  // (N,)
+
+  TV_HD void operator()(int64_t row) const {
+    const CellRecord<io_t> record = records[position_of_row ? position_of_row[row] : row];
+    volume[row] = record.volume;
+    centroid[3 * row] = record.centroid[0];
+    centroid[3 * row + 1] = record.centroid[1];
+    centroid[3 * row + 2] = record.centroid[2];
+    second_moment[row] = record.second_moment;
+    status[row] = record.status;
+    num_neighbors[row] = record.num_neighbors;
+  }
+};
+
+using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+
+// What the ops return: the five outputs (volume, centroid, second_moment,
+// status, num_neighbors), in the caller's rows, or (grid_order) by grid
+// position with `order`, (N,) int64, the caller's row of each position.
+struct VoronoiOutputs {
+  CallerOutputs cells;
+  at::Tensor order;          // undefined unless grid_order
+  int64_t first_pass_k = 0;  // the caller's k or the pilot's, capped by the largest cloud; 0: no pass ran
+};
+
+// Work that a call launches on its outputs before the op returns
+// (torchvor::lloyd_step's move and sums, which the host then reads).
+// voronoi_passes launches it before the first status read, the last one of
+// most calls, so that the device runs it while the host waits for that read
+// (no idle device, no second read); and once more after the passes if a
+// later pass or the poison of unwritten cells changed the outputs since
+// (that launch's results replace the first's).
+using LaunchOnOutputs = std::function<void(const VoronoiOutputs&)>;
+
+// The five outputs from the records by position: in the caller's rows, or
+// in grid order with the order (torchvor::voronoi_cells_grid_order, which
+// saves the inverse order and the scattered gather: Lloyd keeps its points
+// in grid order, and then the next call's grid order is nearly the identity).
+template <typename Exec, typename io_t>
+VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions& options, bool grid_order) {
+  const int64_t n = in.records.size(0);
+  const at::Tensor volume = Exec::empty({n}, options);
+  const at::Tensor centroid = Exec::empty({n, 3}, options);
+  const at::Tensor second_moment = Exec::empty({n}, options);
+  const at::Tensor status = Exec::empty({n}, options.dtype(at::kChar));
+  const at::Tensor num_neighbors = Exec::empty({n}, options.dtype(at::kInt));
+  VoronoiOutputs out;
+  if (grid_order) {
+    out.order = n > 0 ? in.row_of_position.to(at::kLong) : Exec::empty({0}, options.dtype(at::kLong));
+  }
+  if (n > 0) {
+    at::Tensor position_of_row;
+    if (!grid_order) {
+      TORCH_CHECK(in.position_of_row.defined(), "torchvor: internal error: the inverse order was not computed");
+      position_of_row = in.position_of_row;
+    }
+    Exec::for_each(n, ToRowsFunctor<io_t>{grid_order ? nullptr : position_of_row.data_ptr<int32_t>(),
+                                          in.data<io_t>(), volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),
+                                          second_moment.data_ptr<io_t>(), status.data_ptr<int8_t>(),
+                                          num_neighbors.data_ptr<int32_t>()});
+  }
+  out.cells = {volume, centroid, second_moment, status, num_neighbors};
+  return out;
+}
+
+// The outputs by position, every status "not computed" (`status`, from
+// not_computed_statuses); the records are written by the passes (and by
+// PoisonUnwrittenFunctor for the cells that none wrote).
+template <typename io_t>
+PositionOutputs poisoned_outputs(const at::Tensor& status, const at::TensorOptions& options) {
+  PositionOutputs out;
+  out.records = empty_records<io_t>(status.size(0), options);
+  out.status = status;
+  return out;
+}
+
+inline at::Tensor not_computed_statuses(int64_t n, const at::TensorOptions& options) {
+  return at::full({n}, int(core::kNotComputed), options.dtype(at::kChar));
+}
+
+}  // namespace ops
+}  // namespace torchvor

@@ -1,0 +1,299 @@
+// One clip pass over a list of cells: the kNN of a chunk of cells, then their
+// clipping, at a pass's tier and precision, by threads or groups of lanes.
+#pragma once
+
+#include <ATen/ATen.h>
+
+#include <algorithm>
+#include <limits>
+#include <type_traits>
+
+#include "../core/voronoi_cell.h"
+#include "cell_records.h"
+#include "grid.h"
+#include "knn.h"
+#include "options.h"
+
+namespace torchvor {
+namespace ops {
+
+// The grid that the vertex-ball passes sweep, held only by their functors
+// (an empty base of the others): past 128 bytes of kernel parameter, nvcc
+// reads a functor's fields at each use instead of once at the kernel's
+// entry. The static_assert below the functor keeps the hot ones within.
+template <typename io_t, bool kVertexBalls>
+struct VertexBallsGridMember {
+  core::GridView<io_t> grid;  // the points by position
+};
+template <typename io_t>
+struct VertexBallsGridMember<io_t, false> {};
+
+// The planes a cell of a vertex-ball pass may hold: those passes run at the
+// largest tier only, whatever the cells asked for before: their cells are
+// few, and a kernel per tier and precision would triple the vertex-ball
+// kernels to compile.
+constexpr int kVertexBallPlanes = 160;
+
+// Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
+// kVertexBalls, a cell whose neighbours run out before the radius of
+// security is finished on the grid (core::finish_by_vertex_balls). With
+// kCompactTriangles, a thread cell keeps its triangles in 12 bytes
+// (core::CompactTriangles: float32, at most 32 planes).
+template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false, bool kCompactTriangles = false>
+struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
+  static constexpr int kMaxTriangles = 2 * MAX_PLANES;
+  using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
+
+  const io_t* points;          // (N, 3)
+  const io_t* box;             // (B, 2, 3)
+  const int64_t* batch;        // (N,) or nullptr
+  const int32_t* cells;        // (chunk,) cell (= point) ids
+  const int32_t* neighbors;    // (chunk, k) row-major, or (k, chunk) if neighbors_column_major
+  int32_t k;
+  bool neighbors_column_major;
+  int32_t chunk;               // cells in this chunk (the column stride)
+  T tolerance;
+  int band_widenings;          // > 0 only in the last-resort pass
+  bool tetrahedron_start;      // core::compute_cell: from a tetrahedron where one fits (false: the box)
+  bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
+  CellRecord<io_t>* records;   // (N,) by position
+  int8_t* status;              // (N,) by position: the records' statuses again
+
+  // One thread computes cell t.
+  TV_HD void operator()(int64_t t) const {
+    core::ConvexCell<T, MAX_PLANES, kMaxTriangles, kCompactTriangles> cell;
+    write(t, compute(cell, t));
+  }
+
+  // A group of lanes computes cell t together, its arrays in `arrays`.
+  template <typename Lanes>
+  TV_HD void operator()(int64_t t, Lanes lanes, Arrays& arrays) const {
+    core::CooperativeCell<T, MAX_PLANES, kMaxTriangles, Lanes> cell(arrays, lanes);
+    const core::CellIntegrals<T> out = compute(cell, t);
+    if (lanes.index() == 0) write(t, out);
+  }
+
+  template <typename Cell>
+  TV_HD core::CellIntegrals<T> compute(Cell& cell, int64_t t) const {
+    const int32_t cell_id = cells[t];
+    const int64_t b = batch ? batch[cell_id] : 0;
+    const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
+    const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
+    if constexpr (kVertexBalls) {
+      const core::VertexBallGrid<io_t> vertex_balls{this->grid, b};
+      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance,
+                                band_widenings, tetrahedron_start, &vertex_balls);
+    } else {
+      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance,
+                                band_widenings, tetrahedron_start);
+    }
+  }
+
+  TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
+    const int64_t i = rows_by_step ? t : cells[t];
+    records[i] = {static_cast<io_t>(out.volume),
+                  {static_cast<io_t>(out.centroid.x), static_cast<io_t>(out.centroid.y),
+                   static_cast<io_t>(out.centroid.z)},
+                  static_cast<io_t>(out.second_moment), out.neighbors, out.status};
+    status[i] = out.status;
+  }
+};
+static_assert(sizeof(ClipFunctor<float, float, 32>) <= 128 && sizeof(ClipFunctor<double, double, 32>) <= 128,
+              "clip functors beyond 128 bytes get slower kernels (VertexBallsGridMember)");
+
+// How hard a pass tries: neighbours per cell, array tier, precision.
+enum class Precision { kInput, kFloat64, kDoubleDouble };
+
+struct PassSettings {
+  int64_t k;
+  int tier;            // 0, 1, 2: at most 32, 64, 160 planes
+  Precision precision;
+  bool vertex_balls = false;  // cells whose k neighbours run out are finished on the grid
+
+  bool operator==(const PassSettings& o) const {
+    return k == o.k && tier == o.tier && precision == o.precision && vertex_balls == o.vertex_balls;
+  }
+};
+
+// Clips a chunk of cells. With `vertex_balls` (the grid of `points` by
+// position), cells whose neighbours run out before the radius of security
+// are finished on it (ClipFunctor's kVertexBalls).
+// With kUpToDeviceCount, only the cells that `live` says are valid run (the
+// speculative retry pass; kernels of their own).
+template <typename Exec, typename io_t, typename T, int MAX_PLANES, bool kVertexBalls,
+          bool kUpToDeviceCount = false>
+void clip_chunk(const at::Tensor& points, const at::Tensor& box,
+                const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                const at::Tensor& neighbors, bool column_major, int band_widenings,
+                bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
+                const Options& options, PositionOutputs& out, const core::DeviceCount& live = {}) {
+  static_assert(!kVertexBalls || MAX_PLANES == kVertexBallPlanes, "vertex-ball passes run at the largest tier");
+  constexpr bool kCompactPossible = std::is_same<T, float>::value && MAX_PLANES <= 32;
+  // The functor with or without compact triangles (std::true_type or std::false_type).
+  const auto functor = [&](auto compact) {
+    ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls, decltype(compact)::value> clip{
+        {},
+        points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
+        batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+        cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
+        static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
+        T(core::ClipTolerance<T>::value),
+        band_widenings,                 options.tetrahedron_start,
+        rows_by_step,                   out.data<io_t>(),
+        out.status.data_ptr<int8_t>()};
+    if constexpr (kVertexBalls) clip.grid = vertex_balls->view<io_t>();
+    if constexpr (kUpToDeviceCount) {
+      return core::up_to_device_count(clip, live);
+    } else {
+      return clip;
+    }
+  };
+  // One thread per cell (ConvexCell) or a group of lanes per cell
+  // (CooperativeCell): the backend chooses by the pass's size, k and the
+  // pilot's neighbour spread, and options.cells may force one
+  // (use_cooperative). Cells finished on the grid vary the most
+  // (their sweeps' lengths): the backend's choice for the widest spread,
+  // warps on the GPU (each sweeps its cell's rows and points together,
+  // where a thread's cell waited on its own loads: vertex_balls.h).
+  // Float32 thread cells of the first tier keep their triangles in 12 bytes
+  // (options.compact_triangles).
+  // Double-double's products must round separately (Dekker's split); it
+  // runs on the CPU only, one thread per cell.
+  if constexpr (std::is_same<T, core::DoubleDouble>::value) {
+    Exec::for_each(cells.size(0), functor(std::false_type()));
+  } else {
+    const c10::optional<double> spread =
+        kVertexBalls ? c10::optional<double>(std::numeric_limits<double>::infinity()) : neighbor_spread;
+    if (use_cooperative(options.cells, Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
+      Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
+                                                                                          functor(std::false_type()));
+    } else {
+      if constexpr (kCompactPossible) {
+        if (options.compact_triangles) {
+          Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::true_type()));
+          return;
+        }
+      }
+      Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type()));
+    }
+  }
+}
+
+template <typename Exec, typename io_t, typename T>
+void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
+                     const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                     const at::Tensor& neighbors, int tier, const Grid* vertex_balls,
+                     c10::optional<double> neighbor_spread, const Options& options, PositionOutputs& out) {
+  constexpr bool column_major = Exec::kColumnMajorNeighbors;
+  // The arguments that every tier's clip takes alike.
+  const auto clip = [&](auto planes, auto finish_by_vertex_balls, const Grid* grid) {
+    clip_chunk<Exec, io_t, T, decltype(planes)::value, decltype(finish_by_vertex_balls)::value>(
+        points, box, batch, cells, neighbors, column_major, /*band_widenings=*/0, /*rows_by_step=*/false, grid,
+        neighbor_spread, options, out);
+  };
+  if (vertex_balls != nullptr) {
+    TORCH_CHECK(tier == 2, "torchvor: internal error: a vertex-ball pass below the largest tier");
+    clip(std::integral_constant<int, kVertexBallPlanes>(), std::true_type(), vertex_balls);
+    return;
+  }
+  switch (tier) {
+    case 0: clip(std::integral_constant<int, 32>(), std::false_type(), nullptr); break;
+    case 1: clip(std::integral_constant<int, 64>(), std::false_type(), nullptr); break;
+    default: clip(std::integral_constant<int, 160>(), std::false_type(), nullptr); break;
+  }
+}
+
+// The speculative retry pass's clip (voronoi_passes): the first tier, in
+// the points' precision, on the cells of `cells` that `live` says are valid.
+template <typename Exec, typename io_t>
+void clip_chunk_up_to_device_count(const at::Tensor& points, const at::Tensor& box,
+                                   const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                                   const at::Tensor& neighbors, c10::optional<double> neighbor_spread,
+                                   const core::DeviceCount& live, const Options& options,
+                                   PositionOutputs& out) {
+  clip_chunk<Exec, io_t, io_t, 32, false, true>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors,
+                                                0, false, nullptr, neighbor_spread, options, out, live);
+}
+
+// The last resort, on the CPU whatever the device (as the paper's fallback;
+// Exec::HostExec runs it): double-double arithmetic, and an inconsistent clip
+// may widen its predicate band up to 6 times tenfold. Only a handful of cells
+// ever get here.
+template <typename HostExec, typename io_t>
+void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
+                              const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
+                              const at::Tensor& neighbors, bool column_major, const Grid* vertex_balls,
+                              const Options& options, PositionOutputs& out) {
+  const int64_t m = cells.size(0);
+  const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU).contiguous(); };
+  const c10::optional<at::Tensor> batch_cpu =
+      batch.has_value() ? c10::optional<at::Tensor>(cpu(*batch)) : c10::nullopt;
+  const Grid vertex_balls_cpu = vertex_balls != nullptr ? vertex_balls->to_cpu() : Grid{};
+  PositionOutputs part;
+  part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
+  part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
+  const auto clip = [&](auto finish_by_vertex_balls) {
+    clip_chunk<HostExec, io_t, core::DoubleDouble, 160, decltype(finish_by_vertex_balls)::value>(
+        cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
+        /*band_widenings=*/6, /*rows_by_step=*/true, vertex_balls != nullptr ? &vertex_balls_cpu : nullptr,
+        /*neighbor_spread=*/c10::nullopt, options, part);
+  };
+  if (vertex_balls != nullptr) {
+    clip(std::true_type{});
+  } else {
+    clip(std::false_type{});
+  }
+  const at::Tensor rows = cells.to(at::kLong);
+  out.records.index_copy_(0, rows, part.records.to(out.records.device()));
+  out.status.index_copy_(0, rows, part.status.to(out.status.device()));
+}
+
+// One pass over `cells` (int32 point ids), in chunks of bounded memory.
+template <typename Exec, typename io_t>
+void run_pass(const at::Tensor& points, const at::Tensor& box,
+              const c10::optional<at::Tensor>& batch, const Grid& grid, const at::Tensor& cells,
+              const PassSettings& pass, c10::optional<double> neighbor_spread, int64_t memory_budget,
+              const Options& options, PositionOutputs& out) {
+  TORCH_CHECK(cells.is_contiguous(), "torchvor: internal error: cell list not contiguous");
+  // The budget holds the chunk's neighbour ids. Chunks of equal size: a
+  // small last chunk would leave most of the GPU idle while its few cells
+  // run, and every chunk ends in such a tail, so fewer chunks are better.
+  const int64_t bytes_per_cell = pass.k * int64_t(sizeof(int32_t));
+  const int64_t largest_chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
+  const int64_t chunks = std::max<int64_t>(1, (cells.size(0) + largest_chunk - 1) / largest_chunk);
+  const int64_t chunk = (cells.size(0) + chunks - 1) / chunks;
+  for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
+    const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
+    const int64_t m = part.size(0);
+    at::Tensor no_distances;  // the clipper recomputes distances from coordinates
+    // m * k neighbour ids, laid out as Exec prefers (see kColumnMajorNeighbors)
+    at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
+    run_knn<Exec, io_t, int32_t>(grid.view<io_t>(), points.data_ptr<io_t>(), /*queries_in_order=*/false,
+                        batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
+                        part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
+                        /*row_by_query=*/false, Exec::kColumnMajorNeighbors, options.knn, no_distances, neighbors);
+    const Grid* vertex_balls = pass.vertex_balls ? &grid : nullptr;
+    // Float32 points are clipped in float32 or float64; float64 points only
+    // in float64 (`if constexpr`: no float32 cells of float64 points are
+    // compiled, which nothing would run).
+    const auto clip_in_float64 = [&] {
+      clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
+                                          neighbor_spread, options, out);
+    };
+    if (pass.precision == Precision::kDoubleDouble) {
+      clip_chunk_double_double<typename Exec::HostExec, io_t>(points, box, batch, part, neighbors,
+                                                              Exec::kColumnMajorNeighbors, vertex_balls, options,
+                                                              out);
+    } else if constexpr (std::is_same<io_t, double>::value) {
+      clip_in_float64();
+    } else if (pass.precision == Precision::kFloat64) {
+      clip_in_float64();
+    } else {
+      clip_chunk_tier<Exec, io_t, float>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
+                                         neighbor_spread, options, out);
+    }
+  }
+}
+
+}  // namespace ops
+}  // namespace torchvor
