@@ -1,5 +1,6 @@
-// The torchvor operator schemas. Backends register kernels in cpu/ and cuda/;
-// fake (meta) kernels and autograd live in torchvor/ops.py.
+// Every torchvor operator schema. Backends register kernels in cpu/ and cuda/;
+// the Python layer (torchvor/ops.py, torchvor/cvt.py) registers the fake
+// (meta) kernels, the autograd formulas and the ops implemented in Python.
 #include <torch/library.h>
 
 TORCH_LIBRARY(torchvor, m) {
@@ -10,12 +11,12 @@ TORCH_LIBRARY(torchvor, m) {
       "bool exclude_self=False) -> (Tensor dist2, Tensor idx)");
   // Voronoi cells of points clipped to box (B, 2, 3): volume (N,), centroid
   // (N, 3), second moment about the seed (N,), status (N,) int8, and the
-  // number of neighbours each cell needed (N,) int32. k: first-pass
+  // number of nearest neighbours each cell needed (N,) int32. k: first-pass
   // neighbours; None measures it on a pilot sample of cells.
   m.def(
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors)");
+      "Tensor status, Tensor neighbors_needed)");
   // The same cells in the op's grid order (cells of nearby points in nearby
   // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
   // skips the scattered gather to the caller's rows; torchvor.lloyd keeps its
@@ -23,10 +24,10 @@ TORCH_LIBRARY(torchvor, m) {
   m.def(
       "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors, Tensor order)");
+      "Tensor status, Tensor neighbors_needed, Tensor order)");
   // One Lloyd iteration on points (N, 3). The cells as voronoi_cells_grid_order
   // computes them with first-pass k (None: a pilot's, as there): volume,
-  // centroid, second_moment, status and neighbors by grid position, and order
+  // centroid, second_moment, status and neighbors_needed by grid position, and order
   // (N,) int64: row i is the cell of points[order[i]]. moved (N, 3), by grid
   // position: each point at its cell's centroid clamped into its box, or where
   // it was if its cell failed. measures (3,) float64 on the CPU: the sum of
@@ -39,7 +40,19 @@ TORCH_LIBRARY(torchvor, m) {
   m.def(
       "lloyd_step(Tensor points, Tensor box, Tensor? batch, int? k, int sample_stride, int histogram_bins, "
       "int memory_budget=1073741824) -> (Tensor moved, Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors, Tensor order, Tensor measures, Tensor histogram)");
+      "Tensor status, Tensor neighbors_needed, Tensor order, Tensor measures, Tensor histogram)");
+  // The CVT energy of voronoi_cells' cells, energy () = the sum of the second
+  // moments, with its gradient (N, 3) = 2 volume (points - centroid)
+  // (implemented in Python: torchvor/cvt.py).
+  m.def("cvt_energy(Tensor points, Tensor box, Tensor? batch, int? k) -> (Tensor energy, Tensor gradient)");
+  // The columns of a (2, E) int64 edge index whose source is not -1 (kNN's
+  // padding), for knn_graph (implemented in Python: torchvor/ops.py).
+  m.def("drop_missing_edges(Tensor edge_index) -> Tensor");
+  // How many threads the CPU kernels run on (a build without OpenMP would run
+  // one), and the instruction set of the CPU's clip loop ("avx2+fma" or
+  // "baseline"): cpu/cpu_info.cpp.
+  m.def("cpu_threads_used() -> int");
+  m.def("cpu_isa() -> str");
 }
 
 // `import torchvor._C` loads this library, which runs the registrations above.

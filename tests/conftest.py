@@ -5,6 +5,8 @@
 * ``seed`` / ``gen``: fresh random inputs per test. The seed is drawn from the OS
   (or fixed with TORCHVOR_TEST_SEED=<int>) and printed in the report of a
   failing test, so a failure can be replayed.
+* ``cells_impl`` / ``vertex_balls``: the Voronoi tests that take them run under
+  each setting of TORCHVOR_CELLS / TORCHVOR_VERTEX_BALLS_K.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import sys
 import pytest
 import torch
 
-sys.path.insert(0, os.path.dirname(__file__))  # `import oracles` from the tests
+sys.path.insert(0, os.path.dirname(__file__))  # `import oracles`, `import voronoi_checks` from the tests
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
@@ -44,6 +46,28 @@ def gen(seed):
     g = torch.Generator()
     g.manual_seed(seed)
     return g
+
+
+@pytest.fixture(params=["thread", "cooperative"])
+def cells_impl(request, monkeypatch):
+    """Which implementation clips the cells (TORCHVOR_CELLS): one thread per
+    cell (ConvexCell, the CPU's default) or a group of lanes per cell
+    (CooperativeCell: a warp on CUDA, its default; one lane on the CPU). The
+    tests that take this fixture run both on every device."""
+    monkeypatch.setenv("TORCHVOR_CELLS", request.param)
+    return request.param
+
+
+@pytest.fixture(params=["past 256", "every retry"])
+def vertex_balls(request, monkeypatch):
+    """The most neighbours a retry asks for (TORCHVOR_VERTEX_BALLS_K): cells
+    that need more are finished on the grid by the empty balls of their
+    vertices, from a list of that many. By default 256; with 1, every cell a
+    retry takes is finished so, from its nearest neighbour alone. The tests
+    that take this fixture run both."""
+    if request.param == "every retry":
+        monkeypatch.setenv("TORCHVOR_VERTEX_BALLS_K", "1")
+    return request.param
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -1,4 +1,4 @@
-"""Independent reference implementations for torchvor's tests (and benchmarks).
+"""Independent reference implementations for torchvor's tests.
 
 Nothing here calls torchvor: the kNN oracle is brute force in float64 (numpy),
 and the Voronoi oracle intersects half-spaces with scipy/Qhull, cell by cell,

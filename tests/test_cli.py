@@ -187,11 +187,11 @@ def test_cli_cells_writes_the_cell_table(tmp_path, suffix):
     assert result.returncode == 0, result.stderr
     table = np.load(out)
     if suffix == ".npz":
-        volume, status, neighbors = table["volume"], table["status"], table["neighbors"]
+        volume, status, neighbors = table["volume"], table["status"], table["neighbors_needed"]
         assert table["points"].shape == table["centroid"].shape == (300, 3)
     else:
-        assert set(table.dtype.names) == {"point", "volume", "centroid", "second_moment", "status", "neighbors"}
-        volume, status, neighbors = table["volume"], table["status"], table["neighbors"]
+        assert set(table.dtype.names) == {"point", "volume", "centroid", "second_moment", "status", "neighbors_needed"}
+        volume, status, neighbors = table["volume"], table["status"], table["neighbors_needed"]
     assert volume.shape == (300,) and abs(volume.sum() - 1) < 1e-12
     assert (status == 0).all() and status.dtype == np.int8 and (neighbors > 0).all()
 
@@ -203,15 +203,6 @@ def test_cli_plot_writes_a_png(tmp_path):
     assert result.returncode == 0, result.stderr
     assert str(picture) in result.stdout
     assert picture.read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
-
-
-def test_cli_plot_without_matplotlib_is_a_one_line_error(tmp_path):
-    code = ("import sys; sys.modules['matplotlib'] = None\n"  # makes `import matplotlib` fail
-            "from torchvor.cli import main\n"
-            f"sys.exit(main(['lloyd', '--n', '10', '--out', {str(tmp_path / 'p.npy')!r}, '--plot', 'x.png']))")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert_one_line_error(result, "matplotlib is needed", "pip install matplotlib")
-    assert not (tmp_path / "p.npy").exists()
 
 
 BROKEN_INPUTS = {
@@ -246,3 +237,42 @@ def test_cli_bad_arguments_exit_2_with_one_line(tmp_path, arguments, fragment):
 def test_cli_usage_errors_come_from_argparse():
     result = run_cli("lloyd", "--iters", "-3", "--out", "o.npy")
     assert result.returncode == 2 and "Traceback" not in result.stderr and "--iters" in result.stderr
+
+
+# ---- version, and --plot without matplotlib ---------------------------------------------
+
+
+def test_cli_version():
+    import torchvor
+
+    result = run_cli("--version")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"torchvor {torchvor.__version__} (torch {torch.__version__})"
+
+
+def _main_without_matplotlib(*arguments, cwd):
+    code = ("import sys; sys.modules['matplotlib'] = None\n"  # makes `import matplotlib` fail
+            "from torchvor.cli import main\n"
+            f"sys.exit(main({[str(a) for a in arguments]!r}))")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+@pytest.mark.parametrize("arguments", [["lloyd", "--iters", 1, "--out", "p.npy"], ["cells", "--out", "c.npz"]],
+                         ids=["lloyd", "cells"])
+def test_cli_plot_without_matplotlib_writes_the_results_and_skips_the_picture(tmp_path, arguments):
+    """matplotlib is optional: the results are written, the picture is skipped with a warning, exit 0."""
+    result = _main_without_matplotlib(*arguments, "--n", 50, "--plot", "x.png", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    assert (tmp_path / arguments[-1]).exists() and not (tmp_path / "x.png").exists()
+    assert "wrote 50 " in result.stdout
+    warning = [line for line in result.stderr.splitlines() if line.startswith("torchvor: warning: ")]
+    assert len(warning) == 1 and "skipped the picture x.png" in warning[0], result.stderr
+    assert "pip install matplotlib" in warning[0]
+
+
+def test_cli_plot_without_matplotlib_still_checks_its_directory(tmp_path):
+    result = _main_without_matplotlib("lloyd", "--n", 10, "--out", "p.npy", "--plot", "no/such/dir/x.png",
+                                      cwd=tmp_path)
+    assert_one_line_error(result, "--plot", "does not exist")
+    assert not (tmp_path / "p.npy").exists()

@@ -51,7 +51,7 @@ def test_energy_of_an_iteration_is_the_sum_of_its_second_moments(device):
 def test_neighbors_needed_is_the_99th_percentile(device):
     points = samples.white_noise(700, seed=4, dtype=torch.float64, device=device)
     _, history = lloyd(points, UNIT_BOX, iters=1, k=20, return_history=True)
-    needed = torch.sort(torchvor.voronoi(points, UNIT_BOX, k=20).neighbors.cpu()).values
+    needed = torch.sort(torchvor.voronoi(points, UNIT_BOX, k=20).neighbors_needed.cpu()).values
     assert history[0].neighbors_needed == int(needed[math.ceil(0.99 * 700) - 1])
 
 
@@ -62,7 +62,7 @@ def test_neighbors_needed_from_a_strided_sample_beyond_the_sample_size(device, m
     points = samples.white_noise(700, seed=6, dtype=torch.float64, device=device)
     _, history = lloyd(points, UNIT_BOX, iters=1, k=20, return_history=True)
     cells, _ = _voronoi_in_grid_order(points, unit_box_tensor(device=device), k=20)
-    sample = torch.sort(cells.neighbors.cpu()[::7]).values
+    sample = torch.sort(cells.neighbors_needed.cpu()[::7]).values
     assert history[0].neighbors_needed == int(sample[math.ceil(0.99 * 100) - 1])
 
 
@@ -149,7 +149,7 @@ def test_first_iteration_takes_the_pilots_k(monkeypatch, device, kind):
         points = samples.white_noise(1500, seed=30, dtype=torch.float64, device=device)
     else:
         points = samples.jittered_grid(1000, amplitude=0.3, seed=31, dtype=torch.float64, device=device)
-    needed = torchvor.voronoi(points, UNIT_BOX, k=256).neighbors
+    needed = torchvor.voronoi(points, UNIT_BOX, k=256).neighbors_needed
     _, history = lloyd(points, UNIT_BOX, iters=2, return_history=True)
     assert history[0].k == pilot_k_at_quantile_one(needed)
     assert history[1].k == max(8, min(256, history[0].neighbors_needed + 2))
@@ -226,7 +226,7 @@ def test_callback_sees_the_callers_order(device):
     before = points
     for moved, cells in seen:
         reference = torchvor.voronoi(before, UNIT_BOX, k=16)
-        for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed"):
             torch.testing.assert_close(getattr(cells, name), getattr(reference, name), rtol=0, atol=1e-13)
         torch.testing.assert_close(moved, cells.centroid.clamp(0, 1), rtol=0, atol=0)
         before = moved
@@ -236,7 +236,7 @@ def test_callback_sees_the_callers_order(device):
 # ---- lloyd_step (one iteration in one op: the cells in grid order, the move, its measures) ----
 
 
-VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors")
+VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors_needed")
 
 
 def expected_step(points, box, batch, k, stride, bins):
@@ -251,7 +251,7 @@ def expected_step(points, box, batch, k, stride, bins):
     displacement2 = (moved.double() - point.double()).square().sum(1) / (upper.double() - lower.double()).square().sum(1)
     measures = torch.tensor([cells.second_moment.double().sum().item(),
                              displacement2.max().item() if len(points) else 0.0], dtype=torch.float64)
-    histogram = torch.histc(cells.neighbors[::stride].double().cpu(), bins=bins, min=0, max=bins).int()
+    histogram = torch.histc(cells.neighbors_needed[::stride].double().cpu(), bins=bins, min=0, max=bins).int()
     return moved, cells, order, measures, histogram
 
 
@@ -317,7 +317,7 @@ def test_lloyd_step_without_k_runs_the_pilot(monkeypatch, device, batched):
     assert torch.equal(moved, expected_moved)
     torch.testing.assert_close(measures[:2], expected_measures, rtol=1e-12, atol=0)
     assert torch.equal(histogram, expected_histogram)
-    assert measures[2].item() == pilot_k_at_quantile_one(cells.neighbors)
+    assert measures[2].item() == pilot_k_at_quantile_one(cells.neighbors_needed)
 
 
 def test_lloyd_step_histogram_bins_edges(device):
@@ -326,7 +326,7 @@ def test_lloyd_step_histogram_bins_edges(device):
     points = samples.white_noise(400, seed=23, dtype=torch.float64, device=device)
     box = unit_box_tensor(device=device)
     cells, _ = _voronoi_in_grid_order(points, box, None, 16)
-    needed = cells.neighbors.cpu()
+    needed = cells.neighbors_needed.cpu()
     bins = int(needed.median())
     *_, histogram = torch.ops.torchvor.lloyd_step(points, box, None, 16, 1, bins)
     expected = torch.bincount(needed[needed < bins], minlength=bins).int()

@@ -3,10 +3,10 @@
 Meshless Voronoi on the GPU (Ray et al. 2018): grid kNN, then every cell clipped
 on its own from its nearest neighbours, with integrals taken on the fly.
 """
-from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi
+from ._version import __version__
+from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi  # loads torchvor._C
 
 __all__ = ["KNN", "CellStatus", "VoronoiCells", "knn", "knn_graph", "voronoi"]
-__version__ = "0.1.0"
 # Lloyd relaxation layer. Note: the function torchvor.lloyd shadows the module
 # attribute of the same name; import module contents with `from torchvor.lloyd import ...`.
 from .cvt import cvt_energy

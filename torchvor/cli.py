@@ -1,10 +1,11 @@
-"""Command line: ``python -m torchvor lloyd|cells ...`` (run with --help for the usage).
+"""Command line: ``torchvor lloyd|cells ...`` or ``python -m torchvor ...`` (--help for the usage).
 
 Errors in the input (missing, unreadable or malformed files, NaN, points
-outside --box, unavailable device, bad output suffix, matplotlib missing for
---plot) print one line ``torchvor: error: ...`` to stderr and exit with
-status 2, as argparse does for bad options. Progress goes to stderr, the
-final "wrote ..." lines to stdout.
+outside --box, unavailable device, bad output suffix) print one line
+``torchvor: error: ...`` to stderr and exit with status 2, as argparse does
+for bad options. Progress goes to stderr, the final "wrote ..." lines to
+stdout. matplotlib is optional: without it, --plot is skipped with a warning
+on stderr after the results are written (exit status 0).
 """
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ from typing import List, Optional, Tuple
 import torch
 
 from . import io as point_io
+from ._version import __version__
 
-DEFAULT_N = 20000      # generated white noise: 10 Lloyd iterations take about 1-3 s on 2 CPU cores
+DEFAULT_N = 20000      # generated white-noise points without INPUT
 DEFAULT_ITERS = 10
 EXIT_USAGE = 2
 
@@ -43,9 +45,9 @@ CELLS_EPILOG = """\
 output: .npz with arrays points (N,3), volume (N,), centroid (N,3),
 second_moment (N,) (integral over the cell of |x - point|^2), status (N,)
 int8 (0 = success, 5 = duplicate point, others = failure, see
-torchvor.CellStatus) and neighbors (N,) int32 (neighbours the cell needed);
-or .npy holding one structured array with fields point, volume, centroid,
-second_moment, status, neighbors.
+torchvor.CellStatus) and neighbors_needed (N,) int32 (nearest neighbours
+the cell needed); or .npy holding one structured array with fields point,
+volume, centroid, second_moment, status, neighbors_needed.
 """
 
 
@@ -56,9 +58,13 @@ class CliError(Exception):
 # ---- arguments ------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m torchvor", description=DESCRIPTION,
+def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
+    """The parser; ``prog`` defaults to ``torchvor`` for the console script, else ``python -m torchvor``."""
+    if prog is None:
+        prog = "torchvor" if os.path.basename(sys.argv[0]) == "torchvor" else "python -m torchvor"
+    parser = argparse.ArgumentParser(prog=prog, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"torchvor {__version__} (torch {torch.__version__})")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     commands.required = True
 
@@ -95,8 +101,9 @@ def _add_common_arguments(parser: argparse.ArgumentParser, out_help: str) -> Non
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                         help="computation and output dtype (default float32)")
     parser.add_argument("--plot", default=None, metavar="PNG",
-                        help="also draw a picture (needs matplotlib): a z mid-plane slice of the diagram "
-                             "and the energy curve (lloyd) or volume histogram (cells)")
+                        help="also draw a picture (needs matplotlib, else skipped with a warning): a z "
+                             "mid-plane slice of the diagram and the energy curve (lloyd) or volume "
+                             "histogram (cells)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
@@ -130,14 +137,19 @@ def _check_output_directory(option: str, path: str) -> None:
 
 
 def _check_plot_available(args) -> None:
+    """Fail fast on a bad --plot path; without matplotlib, note in ``args.plot_skipped`` why it will be skipped."""
+    args.plot_skipped = None
     if args.plot is None:
         return
+    _check_output_directory("--plot", args.plot)
     from .plot import require_matplotlib
 
     try:
         require_matplotlib()
     except ImportError as error:
-        raise CliError(f"--plot: {error}") from None
+        # The results are still computed and written; only the picture is skipped.
+        args.plot_skipped = str(error)
+        return
     from matplotlib.backend_bases import FigureCanvasBase
 
     formats = FigureCanvasBase.get_supported_filetypes()
@@ -145,7 +157,6 @@ def _check_plot_available(args) -> None:
     if kind not in formats:
         raise CliError(f"--plot {args.plot}: unsupported picture type; use one of "
                        f"{', '.join('.' + name for name in sorted(formats))}")
-    _check_output_directory("--plot", args.plot)
 
 
 def _cuda_usable() -> bool:
@@ -222,7 +233,19 @@ def _prepare(args, out_suffixes: Tuple[str, ...], what: str):
     points, description = _load_points(args, dtype, device)
     box = _box(args, points)
     _say(args, f"torchvor {args.command}: {description}, {args.dtype} on {device}, box {_box_text(box)}")
+    if args.plot_skipped:
+        _say(args, f"torchvor {args.command}: the picture {args.plot} will be skipped: {args.plot_skipped}")
     return points, box
+
+
+def _plot_wanted(args) -> bool:
+    """Whether to draw --plot; says on stderr why not when matplotlib is missing."""
+    if args.plot is None:
+        return False
+    if args.plot_skipped:
+        print(f"torchvor: warning: skipped the picture {args.plot}: {args.plot_skipped}", file=sys.stderr)
+        return False
+    return True
 
 
 def _write(path: str, writer, *values) -> None:
@@ -248,7 +271,7 @@ def run_lloyd(args) -> int:
     _say(args, f"torchvor lloyd: {len(history)} iterations in {elapsed:.2f} s")
     _write(args.out, point_io.write_points, relaxed)
     print(f"torchvor: wrote {relaxed.shape[0]} relaxed points to {args.out}")
-    if args.plot is not None:
+    if _plot_wanted(args):
         from .plot import plot_lloyd
 
         _write(args.plot, plot_lloyd, relaxed, box, [step.energy for step in history])
@@ -277,7 +300,7 @@ def run_cells(args) -> int:
               file=sys.stderr)
     _write(args.out, point_io.write_cells, points, cells)
     print(f"torchvor: wrote {points.shape[0]} cells to {args.out}")
-    if args.plot is not None:
+    if _plot_wanted(args):
         from .plot import plot_cells
 
         _write(args.plot, plot_cells, points, box, cells.volume)

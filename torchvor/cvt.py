@@ -14,9 +14,10 @@ boundaries cancel because neighbouring integrands agree on every bisector.
 Lloyd's algorithm (:mod:`torchvor.lloyd`) is the fixed-point iteration
 x_i <- c_i of this gradient; :func:`cvt_energy` lets any torch optimiser use it.
 
-The op ``torchvor::cvt_energy`` is a Python custom op over
-``torchvor::voronoi_cells`` with a fake kernel and an autograd formula, so it
-works under ``torch.compile(fullgraph=True)`` and passes ``torch.library.opcheck``.
+The op ``torchvor::cvt_energy`` is declared in C++ (csrc/registration.cpp,
+with every other schema); its kernel, fake kernel and autograd formula are
+registered here in Python, over ``torchvor::voronoi_cells``, so it works under
+``torch.compile(fullgraph=True)`` and passes ``torch.library.opcheck``.
 """
 from __future__ import annotations
 
@@ -24,11 +25,17 @@ from typing import Optional, Tuple
 
 import torch
 
-from . import ops as _ops  # registers torch.ops.torchvor.voronoi_cells and its fake kernel
+from . import ops as _ops  # loads torchvor._C (the schemas) and voronoi_cells' fake kernel
 from .ops import BoxLike
 
-@torch.library.custom_op("torchvor::cvt_energy", mutates_args=())
-def _cvt_energy_op(
+# torchvor::cvt_energy(Tensor points, Tensor box, Tensor? batch, int? k)
+#     -> (Tensor energy, Tensor gradient)
+# The kernel is a composite of torchvor::voronoi_cells, which dispatches by
+# device itself; its autograd is the formula below, not a trace of the kernel.
+
+
+@torch.library.impl("torchvor::cvt_energy", "CompositeExplicitAutograd")
+def _cvt_energy_kernel(
     points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor], k: Optional[int]
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """(energy, gradient): energy () = sum of second moments; gradient (N, 3) = dE/dpoints.
@@ -37,7 +44,7 @@ def _cvt_energy_op(
     because setup_context only sees inputs and outputs, and it costs three
     flops per point next to the Voronoi cells themselves.
     """
-    volume, centroid, second_moment, _status, _neighbors = torch.ops.torchvor.voronoi_cells.default(
+    volume, centroid, second_moment, _status, _neighbors_needed = torch.ops.torchvor.voronoi_cells.default(
         points, box, batch, k
     )
     energy = second_moment.sum()
@@ -45,7 +52,7 @@ def _cvt_energy_op(
     return energy, gradient
 
 
-@_cvt_energy_op.register_fake
+@torch.library.register_fake("torchvor::cvt_energy")
 def _cvt_energy_fake(points, box, batch, k):
     return points.new_empty(()), points.new_empty(points.shape)
 
@@ -66,7 +73,10 @@ def _cvt_energy_backward(ctx, grad_energy, _grad_gradient):
     return grad_energy * gradient, None, None, None
 
 
-_cvt_energy_op.register_autograd(_cvt_energy_backward, setup_context=_cvt_energy_setup_context)
+torch.library.register_autograd("torchvor::cvt_energy", _cvt_energy_backward,
+                                setup_context=_cvt_energy_setup_context)
+
+_cvt_energy_op = torch.ops.torchvor.cvt_energy.default
 
 
 def cvt_energy(

@@ -358,7 +358,7 @@ def cell_table(points, cells) -> Dict[str, np.ndarray]:
     return {
         "points": numpy(points), "volume": numpy(cells.volume), "centroid": numpy(cells.centroid),
         "second_moment": numpy(cells.second_moment), "status": numpy(cells.status),
-        "neighbors": numpy(cells.neighbors),
+        "neighbors_needed": numpy(cells.neighbors_needed),
     }
 
 
@@ -367,7 +367,7 @@ def write_cells(path: str, points, cells) -> None:
 
     * ``.npz``: arrays ``points`` (N, 3), ``volume`` (N,), ``centroid`` (N, 3),
       ``second_moment`` (N,), ``status`` (N,) int8 (:class:`~torchvor.CellStatus`
-      codes) and ``neighbors`` (N,) int32.
+      codes) and ``neighbors_needed`` (N,) int32 (nearest neighbours the cell needed).
     * ``.npy``: one structured array of N records with the same field names
       (``point`` instead of ``points``), e.g. ``table["volume"]``.
 
@@ -383,9 +383,9 @@ def write_cells(path: str, points, cells) -> None:
         real = table["volume"].dtype
         records = np.empty(table["volume"].shape[0], dtype=[
             ("point", real, (3,)), ("volume", real), ("centroid", real, (3,)),
-            ("second_moment", real), ("status", np.int8), ("neighbors", np.int32)])
+            ("second_moment", real), ("status", np.int8), ("neighbors_needed", np.int32)])
         records["point"] = table["points"]
-        for name in ("volume", "centroid", "second_moment", "status", "neighbors"):
+        for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed"):
             records[name] = table[name]
         with open(path, "wb") as handle:
             np.save(handle, records)

@@ -9,12 +9,11 @@ The first-pass neighbour count ``k`` of the cell computation adapts to the
 point set (paper §5.2): white noise needs large neighbourhoods in the first
 iterations, relaxed points small ones. The first iteration takes the k of
 the op's pilot sample (as ``voronoi`` does by default), so that points that
-are already relaxed do not pay for white noise's k (one iteration at 10M blue
-noise on an H100: 67 ms at k=64, 36 with the pilot's k). Each iteration
-measures how many neighbours every cell needed and the next one fetches the
-99th percentile of that plus a small margin, so the few cells that need more
-are recomputed (automatically, by ``voronoi``) instead of all cells fetching
-too many.
+are already relaxed do not fetch white noise's large neighbourhoods for
+every cell. Each iteration measures how many neighbours every cell needed
+and the next one fetches the 99th percentile of that plus a small margin,
+so the few cells that need more are recomputed (automatically, by
+``voronoi``) instead of all cells fetching too many.
 
 The points are kept in the order of the cell computation's grid (cells of
 nearby points in nearby rows): each iteration (one op, ``torchvor::lloyd_step``)
@@ -212,9 +211,9 @@ def _step(current: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor
     them to the host with its last status read, so a step waits once. A
     failed cell's NaN second moment makes the energy NaN, and only then are
     the failures counted (a second read). The quantile comes from a histogram
-    of at most 2 * QUANTILE_SAMPLE cells spread over the input (its standard
-    error is then ~0.05% of the cells; every cell's count contends for ~10
-    bins, which took 0.1 ms of the GPU at 1M).
+    of at most 2 * QUANTILE_SAMPLE cells spread over the input: its standard
+    error is then ~0.05% of the cells, and a histogram of every cell would
+    make all of them contend for the ~10 bins their counts fall in.
     """
     count = current.shape[0]
     stride = max(1, count // QUANTILE_SAMPLE)

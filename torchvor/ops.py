@@ -1,5 +1,9 @@
 """Thin Python layer over ``torch.ops.torchvor``: defaults, named results, fake kernels.
 
+Every op's schema is declared in C++ (csrc/registration.cpp); this module adds
+their fake kernels for torch.compile and opcheck, and the Python kernel of
+``torchvor::drop_missing_edges``.
+
 Shapes use N for points, M for queries, B for batch elements (point clouds).
 Bad input raises ``ValueError`` (wrong shape, values, devices) or ``TypeError``
 (wrong dtype), from the C++ checks that name the argument.
@@ -11,7 +15,9 @@ from typing import NamedTuple, Optional, Sequence, Union
 
 import torch
 
-from . import _C  # noqa: F401  (registers torch.ops.torchvor.*)
+from ._extension import load_extension
+
+load_extension()  # torchvor._C: the op schemas and the C++/CUDA kernels, or an ImportError that says what to do
 
 # voronoi's default memory_budget, as in the ops' schemas (csrc/registration.cpp).
 DEFAULT_MEMORY_BUDGET = 1 << 30
@@ -51,10 +57,10 @@ class VoronoiCells(NamedTuple):
     centroid: (N, 3) cell centroids (the point itself for an empty cell).
     second_moment: (N,) integral over the cell of ``|x - points[i]|^2`` (CVT energy term).
     status: (N,) int8 :class:`CellStatus` codes.
-    neighbors: (N,) int32 number of nearest neighbours the cell needed
-        (the radius-of-security criterion was met after that many). A cell
-        that would need more than 256 is finished by the empty balls of its
-        vertices instead (see :func:`voronoi`): 256 (its list) plus its
+    neighbors_needed: (N,) int32 number of nearest neighbours the cell
+        needed (the radius-of-security criterion was met after that many). A
+        cell that would need more than 256 is finished by the empty balls of
+        its vertices instead (see :func:`voronoi`): 256 (its list) plus its
         Voronoi neighbours beyond the list.
     Floating outputs have the points' dtype; a cell that could not be computed
     has NaN outputs and a failure status.
@@ -64,7 +70,7 @@ class VoronoiCells(NamedTuple):
     centroid: torch.Tensor
     second_moment: torch.Tensor
     status: torch.Tensor
-    neighbors: torch.Tensor
+    neighbors_needed: torch.Tensor
 
 
 def knn(
@@ -131,16 +137,19 @@ def knn_graph(
     result = knn(points, k, batch=batch, exclude_self=not loop)
     n = points.shape[0]
     target = torch.arange(n, device=points.device).repeat_interleave(k)
-    return _drop_missing_edges(torch.stack([result.idx.reshape(-1), target]))
+    return torch.ops.torchvor.drop_missing_edges.default(torch.stack([result.idx.reshape(-1), target]))
 
 
-@torch.library.custom_op("torchvor::drop_missing_edges", mutates_args=())
+# torchvor::drop_missing_edges (schema in csrc/registration.cpp): an op of its
+# own so that torch.compile sees one data-dependent output size, not a boolean
+# index inside the graph.
+@torch.library.impl("torchvor::drop_missing_edges", "CompositeExplicitAutograd")
 def _drop_missing_edges(edge_index: torch.Tensor) -> torch.Tensor:
-    """Drop the columns of a (2, E) edge index whose source is -1 (kNN padding)."""
+    """Drop the columns of a (2, E) int64 edge index whose source is -1 (kNN padding)."""
     return edge_index[:, edge_index[0] >= 0]
 
 
-@_drop_missing_edges.register_fake
+@torch.library.register_fake("torchvor::drop_missing_edges")
 def _drop_missing_edges_fake(edge_index):
     # The number of real edges depends on the data: a dynamic size for torch.compile.
     edges = torch.library.get_ctx().new_dynamic_size()
@@ -197,13 +206,10 @@ def as_box(points: torch.Tensor, box: Optional[BoxLike], batch: Optional[torch.T
 
 # Device copies of the boxes that voronoi() and lloyd() were given as
 # numbers, by (values, dtype, device): a call with a box seen before makes no
-# tensor and no copy. Those are the first host work of a call, while the GPU
-# waits, and right after the host has waited on the device (as after the
-# previous call) that work is slow: 100-210 us from the call to the box on
-# the H100 machines, against 17-30 us from this cache (~15 us for as_box on
-# a warm host; benchmarks/NOTES.md). Each copy is a blocking one, so that any
-# stream may read it at once; only the ops read them (they never write their
-# box), and none is handed to the caller.
+# tensor and no host-to-device copy, which would otherwise be the first host
+# work of every call while the GPU waits. Each copy is a blocking one, so that
+# any stream may read it at once; only the ops read them (they never write
+# their box), and none is handed to the caller.
 _DEVICE_BOXES: dict = {}
 _DEVICE_BOXES_KEPT = 16
 
@@ -251,22 +257,16 @@ def voronoi(
     more than 256 neighbours is therefore finished otherwise: from its 256
     nearest, it is clipped by every point of the kNN grid that lies in the
     ball around one of its vertices through the seed (only such a point can
-    cut it), until none is left; on CUDA a warp sweeps each such cell. On 2
-    CPU cores, 50K points in 20 Gaussian clusters of 0.02 take 0.9-1.0 s (3.7
-    s with the radius of security alone), and 50K white-noise points in a
-    cube three times as wide as theirs 0.55 s (19 s; 0.25 s in their own
-    cube). On an H100, 1M such points take 118 ms and 81 ms (23 ms in their
-    own cube). The cost of such a cell grows with the grid cells its
-    vertices' balls cover.
+    cut it), until none is left; on CUDA a warp sweeps each such cell. The
+    cost of such a cell grows with the grid cells its vertices' balls cover.
 
     Precision: outputs have the points' dtype and are computed in it (then
     float64, double-double where needed, as above). In float32, cells that a
     thread computes in the first tier (up to 32 planes: the usual cell) hold
     their vertices to 18 mantissa bits, which keeps the GPU's cell state
-    small: 200K white-noise volumes then differ from float64's by at most
-    6e-6 relative (9e-7 with full float32 vertices; the environment
-    variable ``TORCHVOR_THREAD_TRIANGLES=full`` keeps them: on an H100,
-    10M blue-noise points then take ~6% longer). Use float64 points for more.
+    small; volumes then differ from float64's by a few parts in a million
+    (the environment variable ``TORCHVOR_THREAD_TRIANGLES=full`` keeps full
+    float32 vertices, a little slower). Use float64 points for more.
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``.
@@ -291,9 +291,8 @@ def voronoi(
             1024 cells, so a first pass whose k exceeds ``memory_budget / 4096``
             (262144 by default) takes more; retries ask for at most 256
             neighbours a cell. Fewer chunks are a little faster (each ends in
-            a tail of idle GPU): on an H100, 10M blue-noise points take 35.32
-            ms with 512 MiB, 35.18 with 1 GiB (one chunk), and 10M white-noise
-            points then take 1.1 GiB of memory beyond inputs and outputs.
+            a tail of idle GPU); the budget bounds the neighbour buffer, not
+            the cells' other working memory.
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,
@@ -334,9 +333,7 @@ def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optio
         ``points[order[i]]``, and ``order``, (N,) int64, a permutation that
         sorts the points by grid cell (stably: points of one cell keep their
         relative order). A caller that keeps its points in this order gives
-        the next call a nearly sorted input: one Lloyd iteration at 10M blue
-        noise took 40.4-40.6 ms this way against 41.0-41.3 (H100,
-        benchmarks/RESULTS.md).
+        the next call a nearly sorted input, which it sorts faster.
     """
     *outputs, order = torch.ops.torchvor.voronoi_cells_grid_order.default(points, box, batch, k, memory_budget)
     return VoronoiCells(*outputs), order

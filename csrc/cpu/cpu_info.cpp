@@ -14,6 +14,7 @@
 #include <string>
 #include <thread>
 
+#include "../ops/options.h"
 #include "exec.h"
 
 namespace torchvor {
@@ -38,13 +39,14 @@ int64_t cpu_threads_used() {
   return static_cast<int64_t>(threads.size());
 }
 
-std::string cpu_isa_used() { return isa_name(cpu_isa()); }
+std::string cpu_isa_used() { return isa_name(cpu_isa(ops::Options::from_environment().cpu_baseline_isa)); }
 
 }  // namespace
 
+// No tensor arguments, so no dispatch key: catch-all kernels.
 TORCH_LIBRARY_FRAGMENT(torchvor, m) {
-  m.def("cpu_threads_used() -> int", &cpu_threads_used);
-  m.def("cpu_isa() -> str", &cpu_isa_used);
+  m.impl("cpu_threads_used", &cpu_threads_used);
+  m.impl("cpu_isa", &cpu_isa_used);
 }
 
 }  // namespace cpu
