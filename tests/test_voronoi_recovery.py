@@ -111,6 +111,28 @@ def test_clusters_with_voids(monkeypatch, device, dtype, seed, gen):
     assert_same_integrals(cells, by_radius, dtype)
 
 
+def wall_layer(gen, inner=2000, on_wall=20000, close=50):
+    """Sparse points in the unit cube, a dense layer of points on its wall z = 0
+    (as in a cloud clamped into its box) and points just above that layer, whose
+    cells reach down to it and have hundreds of faces."""
+    points = torch.rand(inner + on_wall + close, 3, generator=gen, dtype=torch.float64)
+    points[inner:inner + on_wall, 2] = 0.0
+    points[inner + on_wall:, 2] = 10 ** (-4 * torch.rand(close, generator=gen, dtype=torch.float64) - 1)
+    return points
+
+
+def test_cells_beside_a_dense_wall_layer(device, dtype, gen):
+    """Cells with more faces than the device's largest tier holds are finished on
+    the host at larger tiers: every cell computed, the many-faced ones exact."""
+    points = wall_layer(gen).to(dtype).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    many_faced = torch.argsort(cells.neighbors_needed.cpu(), descending=True)[:12].numpy()
+    subset = np.unique(np.concatenate([many_faced, np.arange(points.shape[0] - 12, points.shape[0])]))
+    check_against_oracle(cells, points, lohi, subset, RTOL[dtype])
+
+
 @pytest.mark.parametrize("most", ["1", "8", "0", "-3", "8x"])
 def test_vertex_balls_k_changes_no_cell(monkeypatch, device, dtype, gen, most):
     """TORCHVOR_VERTEX_BALLS_K sets the most neighbours a retry asks for

@@ -7,6 +7,7 @@
 // are oriented consistently, which the integrals (§3.5) rely on.
 #pragma once
 
+#include <cstdint>
 #include <type_traits>
 
 #include "common.h"
@@ -39,10 +40,26 @@ struct alignas(16) CachedVertex {
 // position are read together by the integrals). |vertex|^2 is recomputed
 // where needed rather than stored: the thread cell's speed is bound by how
 // much cell state its threads keep in the L1 cache, and arithmetic is cheap beside a local-memory word.
-template <typename T>
+template <typename T, typename Corners = uint32_t>
 struct alignas(16) DualTriangle {
   Vec3<T> position;
-  uint32_t corners;  // plane ids (a, b, c) packed as a | b << 8 | c << 16
+  Corners corners;  // plane ids (a, b, c) packed (PlaneIds)
+};
+
+// How a thread cell's triangles name their planes: three ids packed in one
+// word, a | b << kBits | c << 2 kBits; a byte each up to 255 planes, 16 bits
+// each beyond (the host's largest tiers). The largest id means "none".
+template <bool kWide>
+struct PlaneIds {
+  using Id = uint8_t;
+  using Corners = uint32_t;
+  static constexpr int kBits = 8;
+};
+template <>
+struct PlaneIds<true> {
+  using Id = uint16_t;
+  using Corners = uint64_t;
+  static constexpr int kBits = 16;
 };
 
 // Planes 0-5 of every cell are the box's faces (box_plane); the bisectors
@@ -280,6 +297,11 @@ TV_HD bool has_edge(uint32_t corners, uint32_t code) {
   return ((corners & 0xffffu) == code) | ((corners >> 8) == code) |
          (((corners >> 16) | (corners & 0xffu) << 8) == code);
 }
+// The same with 16-bit ids (PlaneIds<true>): code from | to << 16.
+TV_HD bool has_edge(uint64_t corners, uint64_t code) {
+  return ((corners & 0xffffffffu) == code) | ((corners >> 16) == code) |
+         (((corners >> 32) | (corners & 0xffffu) << 16) == code);
+}
 
 // Whether a removed region's boundary of `length` edges is one cycle without
 // walking it, given that its edges leave distinct planes, enter distinct
@@ -446,17 +468,17 @@ TV_HD void insert_by_distance(Vec3<T> offset, T nearest2, Vec3<T>* r, T* r2, int
 
 // Where a thread cell keeps its dual triangles: one DualTriangle a slot
 // (16 bytes in float32, 32 in float64), or 12 bytes (CompactTriangles).
-template <typename T, int N>
+template <typename T, int N, typename Corners = uint32_t>
 struct TriangleSlots {
-  DualTriangle<T> slot[N];
+  DualTriangle<T, Corners> slot[N];
   TV_HD Vec3<T> position(int t) const { return slot[t].position; }
-  TV_HD uint32_t corners(int t) const { return slot[t].corners; }
+  TV_HD Corners corners(int t) const { return slot[t].corners; }
   // Stores a vertex and returns it as it reads back (here: as given).
-  TV_HD Vec3<T> set(int t, Vec3<T> position, uint32_t corners) {
+  TV_HD Vec3<T> set(int t, Vec3<T> position, Corners corners) {
     slot[t] = {position, corners};
     return position;
   }
-  TV_HD void set_corners(int t, uint32_t corners) { slot[t].corners = corners; }
+  TV_HD void set_corners(int t, Corners corners) { slot[t].corners = corners; }
   TV_HD void copy(int to, int from) { slot[to] = slot[from]; }
 };
 
@@ -517,10 +539,13 @@ struct ConvexCell {
   using Scalar = T;
   using Lanes = SingleLane;  // one thread computes the cell
   static constexpr bool kTetrahedronStart = true;  // init_tetrahedron (start_tetrahedron)
-  static_assert(MAX_PLANES <= 255, "plane ids are stored as uint8 (255 = none)");
+  using Ids = PlaneIds<(MAX_PLANES > 255)>;
+  using Id = typename Ids::Id;
+  using Corners = typename Ids::Corners;
+  static constexpr Id kNone = static_cast<Id>(-1);
+  static_assert(MAX_PLANES <= kNone, "plane ids must stay below kNone");
   static_assert(!kCompact || (std::is_same<T, float>::value && MAX_PLANES <= 32),
                 "compact triangles hold float32 coordinates and 5-bit plane ids");
-  static constexpr uint8_t kNone = 255;
   static constexpr int kMaskWords = (MAX_TRIANGLES + 31) / 32;
   using Mask = BitSet<kMaskWords>;
   using PlaneSet = BitSet<(MAX_PLANES + 31) / 32>;
@@ -533,7 +558,8 @@ struct ConvexCell {
   // the box start only (init_tetrahedron says why).
   Plane<T> box_face[kBoxPlanes];
   Vec3<T> neighbor[MAX_PLANES - kBoxPlanes];
-  typename std::conditional<kCompact, CompactTriangles<MAX_TRIANGLES>, TriangleSlots<T, MAX_TRIANGLES>>::type triangle;
+  typename std::conditional<kCompact, CompactTriangles<MAX_TRIANGLES>,
+                            TriangleSlots<T, MAX_TRIANGLES, Corners>>::type triangle;
   int32_t num_planes;
   int32_t num_triangles;
   T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
@@ -549,8 +575,16 @@ struct ConvexCell {
     return bisector_plane(r, squared_norm(r));
   }
 
-  TV_HD static uint32_t pack(uint32_t a, uint32_t b, uint32_t c) { return a | b << 8 | c << 16; }
-  TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
+  TV_HD static Corners pack(Corners a, Corners b, Corners c) { return a | b << Ids::kBits | c << (2 * Ids::kBits); }
+  TV_HD static Id corner(Corners triangle, int e) { return Id(triangle >> (Ids::kBits * e)); }
+  // Corners packed a byte an id (box_triangle, StartTetrahedron) in this cell's packing.
+  TV_HD static Corners from_bytes(uint32_t packed) {
+    if constexpr (Ids::kBits == 8) {
+      return packed;
+    } else {
+      return pack(packed & 0xffu, packed >> 8 & 0xffu, packed >> 16 & 0xffu);
+    }
+  }
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
   TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
@@ -559,7 +593,7 @@ struct ConvexCell {
     num_triangles = 8;
     radius2 = T(0);
     for (int t = 0; t < 8; ++t) {
-      const uint32_t corners = box_triangle(t);
+      const Corners corners = from_bytes(box_triangle(t));
       radius2 = max_of(radius2, set_triangle(t, corner(corners, 0), corner(corners, 1), corner(corners, 2)).radius2);
     }
   }
@@ -577,17 +611,17 @@ struct ConvexCell {
     TV_UNROLL
     for (int t = 0; t < 4; ++t) {
       neighbor[t] = start.offset[t];
-      const Vec3<T> vertex = triangle.set(t, start.vertex[t], start.corners[t] + 0x060606u);
+      const Vec3<T> vertex = triangle.set(t, start.vertex[t], from_bytes(start.corners[t] + 0x060606u));
       radius2 = max_of(radius2, squared_norm(vertex));
     }
   }
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
-  TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c) {
+  TV_HD CachedVertex<T> set_triangle(int t, Id a, Id b, Id c) {
     return set_triangle(t, a, b, c, plane(a), plane(b), plane(c));
   }
   // The same with the planes of a, b, c already at hand.
-  TV_HD CachedVertex<T> set_triangle(int t, uint8_t a, uint8_t b, uint8_t c, const Plane<T>& pa,
+  TV_HD CachedVertex<T> set_triangle(int t, Id a, Id b, Id c, const Plane<T>& pa,
                                      const Plane<T>& pb, const Plane<T>& pc) {
     const Vec3<T> position = triangle.set(t, intersect_planes(pa, pb, pc), pack(a, b, c));
     return {position, squared_norm(position)};
@@ -615,7 +649,7 @@ struct ConvexCell {
     PlaneSet used;
     used.clear();
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle.corners(t);
+      const Corners corners = triangle.corners(t);
       for (int e = 0; e < 3; ++e) used.set(corner(corners, e));
     }
     int count = 0;
@@ -644,10 +678,10 @@ struct ConvexCell {
     // one, and the volume error stays of the order of the band.
     Mask clipped;
     T kept_radius2;  // the largest |vertex|^2 of the vertices the plane keeps
-    uint8_t next[MAX_PLANES];
+    Id next[MAX_PLANES];
     PlaneSet on_boundary;
     int boundary_length = 0;
-    uint8_t start = kNone;
+    Id start = kNone;
     T band = tolerance;
     for (int attempt = 0;; ++attempt, band = band * T(10)) {
       if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
@@ -671,14 +705,14 @@ struct ConvexCell {
     // threads' 4-byte words, so one thread's plane spans up to three
     // sectors), so loading each plane once cuts the fan's L1 traffic.
     typename Mask::Cursor holes = clipped.cursor();
-    uint8_t from = start;
+    Id from = start;
     Plane<T> from_plane = plane(from);
     T largest = kept_radius2;
     for (int e = 0; e < boundary_length; ++e) {
-      const uint8_t to = next[from];
+      const Id to = next[from];
       const Plane<T> to_plane = plane(to);
       const int slot = e < removed ? holes.next() : num_triangles++;
-      const T v2 = set_triangle(slot, from, to, static_cast<uint8_t>(new_plane), from_plane, to_plane, p).radius2;
+      const T v2 = set_triangle(slot, from, to, static_cast<Id>(new_plane), from_plane, to_plane, p).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
       largest = max_of(largest, v2);
       from = to;
@@ -695,7 +729,7 @@ struct ConvexCell {
                        T& unsigned_volume) const {
     CellMoments<T> moments = CellMoments<T>::zero();
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle.corners(t);
+      const Corners corners = triangle.corners(t);
       const Vec3<T> position = triangle.position(t);
       const Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
       moments.add_vertex(planes, {position, squared_norm(position)});
@@ -769,9 +803,9 @@ struct ConvexCell {
   // cycle (short_cycle_needs_no_walk, cycle_length). The removed triangles
   // are gathered first, so that the search for reverse edges is a short
   // branch-free loop of the same length in every lane.
-  TV_HD bool removed_boundary(const Mask& clipped, uint8_t* next, PlaneSet& on_boundary,
-                              int& length, uint8_t& start) const {
-    uint32_t removed[MAX_TRIANGLES];
+  TV_HD bool removed_boundary(const Mask& clipped, Id* next, PlaneSet& on_boundary,
+                              int& length, Id& start) const {
+    Corners removed[MAX_TRIANGLES];
     int count = 0;
     for (int w = 0; w < kMaskWords; ++w) {
       for (uint32_t bits = clipped.get(w); bits != 0u; bits &= bits - 1u)
@@ -783,22 +817,24 @@ struct ConvexCell {
     length = 0;
     start = kNone;
     for (int i = 0; i < count; ++i) {
-      const uint32_t corners = removed[i];
+      const Corners corners = removed[i];
       // Bit e: edge e's reverse is in a removed triangle (the edge is
       // interior). One pass over the removed triangles tests all three
       // edges, one load each (cheaper than a pass per edge).
-      uint32_t reverse[3];
+      Corners reverse[3];
       TV_UNROLL
-      for (int e = 0; e < 3; ++e) reverse[e] = uint32_t(corner(corners, (e + 1) % 3)) | uint32_t(corner(corners, e)) << 8;
+      for (int e = 0; e < 3; ++e) {
+        reverse[e] = Corners(corner(corners, (e + 1) % 3)) | Corners(corner(corners, e)) << Ids::kBits;
+      }
       uint32_t interior = 0u;
       for (int j = 0; j < count; ++j) {
-        const uint32_t other = removed[j];
+        const Corners other = removed[j];
         TV_UNROLL
         for (int e = 0; e < 3; ++e) interior |= uint32_t(has_edge(other, reverse[e])) << e;
       }
       for (int e = 0; e < 3; ++e) {
         if ((interior >> e) & 1u) continue;
-        const uint8_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
+        const Id from = corner(corners, e), to = corner(corners, (e + 1) % 3);
         // A plane twice on the boundary: not a simple cycle.
         if (on_boundary.test(from) || targets.test(to)) return false;
         on_boundary.set(from);
@@ -817,9 +853,9 @@ struct ConvexCell {
   }
 
   // Edges on the way from `start` back to itself; stops early at a dead end.
-  TV_HD static int cycle_length(const uint8_t* next, const PlaneSet& on_boundary, uint8_t start) {
+  TV_HD static int cycle_length(const Id* next, const PlaneSet& on_boundary, Id start) {
     int length = 0;
-    uint8_t from = start;
+    Id from = start;
     do {
       from = next[from];
       ++length;
@@ -830,21 +866,21 @@ struct ConvexCell {
   // Drop planes that no vertex uses any more and renumber the rest, so that a
   // long clipping sequence does not overflow the plane array with dead planes.
   TV_HD void compact_planes() {
-    uint8_t renumber[MAX_PLANES];
+    Id renumber[MAX_PLANES];
     for (int q = 0; q < num_planes; ++q) renumber[q] = kNone;
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle.corners(t);
+      const Corners corners = triangle.corners(t);
       for (int e = 0; e < 3; ++e) renumber[corner(corners, e)] = 0;
     }
-    for (int q = 0; q < kBoxPlanes; ++q) renumber[q] = static_cast<uint8_t>(q);
+    for (int q = 0; q < kBoxPlanes; ++q) renumber[q] = static_cast<Id>(q);
     int live = kBoxPlanes;
     for (int q = kBoxPlanes; q < num_planes; ++q) {
       if (renumber[q] == kNone) continue;
       neighbor[live - kBoxPlanes] = neighbor[q - kBoxPlanes];
-      renumber[q] = static_cast<uint8_t>(live++);
+      renumber[q] = static_cast<Id>(live++);
     }
     for (int t = 0; t < num_triangles; ++t) {
-      const uint32_t corners = triangle.corners(t);
+      const Corners corners = triangle.corners(t);
       triangle.set_corners(t, pack(renumber[corner(corners, 0)], renumber[corner(corners, 1)],
                                    renumber[corner(corners, 2)]));
     }

@@ -1,7 +1,11 @@
 #include <torch/library.h>
 
 #include "../ops/voronoi.h"
+#include "clip_on_host.h"
 #include "exec.h"
+
+// Compiled in clip_on_host.cpp.
+TORCHVOR_CLIPS_ON_HOST(extern);
 
 // The one instantiation of this backend's passes, for the voronoi ops below
 // and for lloyd.cpp's torchvor::lloyd_step.

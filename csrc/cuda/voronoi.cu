@@ -1,12 +1,14 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
+#include "../cpu/clip_on_host.h"
 #include "../ops/voronoi.h"
 #include "clip_tiers.cuh"
 #include "exec.cuh"
 
-// Compiled in clip_*.cu.
+// Compiled in clip_*.cu and, for the host's clips, cpu/clip_on_host.cpp.
 TORCHVOR_CLIP_CHUNK_TIERS(extern);
+TORCHVOR_CLIPS_ON_HOST(extern);
 
 // The one instantiation of this backend's passes, for the voronoi ops below
 // and for lloyd.cu's torchvor::lloyd_step.

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <limits>
+#include <memory>
 #include <type_traits>
 
 #include "../core/voronoi_cell.h"
@@ -28,11 +29,29 @@ struct VertexBallsGridMember {
 template <typename io_t>
 struct VertexBallsGridMember<io_t, false> {};
 
-// The planes a cell of a vertex-ball pass may hold: those passes run at the
-// largest tier only, whatever the cells asked for before: their cells are
-// few, and a kernel per tier and precision would triple the vertex-ball
-// kernels to compile.
-constexpr int kVertexBallPlanes = 160;
+// The planes a cell may hold at each tier of recovery. The device runs tiers
+// up to kLastDeviceTier, in kernels; the larger ones run on the host
+// (Exec::HostExec), for the rare cells with hundreds of faces (a point next
+// to a dense layer of points, as on the walls of a clamped cloud).
+constexpr int kTierPlanes[] = {32, 64, 160, 1024, 4096};
+constexpr int kLastDeviceTier = 2;
+constexpr int kLastTier = 4;
+
+// The planes a cell of a vertex-ball pass may hold at least: those passes run
+// at the device's largest tier or beyond, whatever the cells asked for
+// before (their cells are few, and a kernel per tier and precision would
+// triple the vertex-ball kernels to compile).
+constexpr int kVertexBallPlanes = kTierPlanes[kLastDeviceTier];
+
+// A scalar type as a value (clip_chunk_on_host's dispatch).
+template <typename T>
+struct ScalarTag {
+  using type = T;
+};
+
+// Tiers whose cells hold more planes than a thread's stack should: the host
+// keeps such a cell on the heap (ClipFunctor).
+constexpr bool on_heap(int planes) { return planes > 255; }
 
 // Clip cell `cells[t]` by its neighbours (row t of `neighbors`); with
 // kVertexBalls, a cell whose neighbours run out before the radius of
@@ -59,10 +78,18 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   CellRecord<io_t>* records;   // (N,) by position
   int8_t* status;              // (N,) by position: the records' statuses again
 
-  // One thread computes cell t.
+  // One thread computes cell t (the host's largest tiers: on the heap).
   TV_HD void operator()(int64_t t) const {
-    core::ConvexCell<T, MAX_PLANES, kMaxTriangles, kCompactTriangles> cell;
-    write(t, compute(cell, t));
+    using Cell = core::ConvexCell<T, MAX_PLANES, kMaxTriangles, kCompactTriangles>;
+    if constexpr (on_heap(MAX_PLANES)) {
+#if !defined(__CUDA_ARCH__)
+      const std::unique_ptr<Cell> cell(new Cell);
+      write(t, compute(*cell, t));
+#endif
+    } else {
+      Cell cell;
+      write(t, compute(cell, t));
+    }
   }
 
   // A group of lanes computes cell t together, its arrays in `arrays`.
@@ -106,7 +133,7 @@ enum class Precision { kInput, kFloat64, kDoubleDouble };
 
 struct PassSettings {
   int64_t k;
-  int tier;            // 0, 1, 2: at most 32, 64, 160 planes
+  int tier;            // 0 to kLastTier: at most kTierPlanes[tier] planes
   Precision precision;
   bool vertex_balls = false;  // cells whose k neighbours run out are finished on the grid
 
@@ -127,7 +154,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const at::Tensor& neighbors, bool column_major, int band_widenings,
                 bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
                 const Options& options, PositionOutputs& out, const core::DeviceCount& live = {}) {
-  static_assert(!kVertexBalls || MAX_PLANES == kVertexBallPlanes, "vertex-ball passes run at the largest tier");
+  static_assert(!kVertexBalls || MAX_PLANES >= kVertexBallPlanes, "vertex-ball passes run at the largest tiers");
   constexpr bool kCompactPossible = std::is_same<T, float>::value && MAX_PLANES <= 32;
   // The functor with or without compact triangles (std::true_type or std::false_type).
   const auto functor = [&](auto compact) {
@@ -159,8 +186,11 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // (options.compact_triangles).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
+  // The host's largest tiers run thread cells only (a warp cell's ids are bytes).
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor(std::false_type()));
+  } else if constexpr (on_heap(MAX_PLANES)) {
+    Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type()));
   } else {
     const c10::optional<double> spread =
         kVertexBalls ? c10::optional<double>(std::numeric_limits<double>::infinity()) : neighbor_spread;
@@ -192,7 +222,7 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
         neighbor_spread, options, out);
   };
   if (vertex_balls != nullptr) {
-    TORCH_CHECK(tier == 2, "torchvor: internal error: a vertex-ball pass below the largest tier");
+    TORCH_CHECK(tier == kLastDeviceTier, "torchvor: internal error: a vertex-ball pass below the largest tier");
     clip(std::integral_constant<int, kVertexBallPlanes>(), std::true_type(), vertex_balls);
     return;
   }
@@ -215,15 +245,16 @@ void clip_chunk_up_to_device_count(const at::Tensor& points, const at::Tensor& b
                                                 0, false, nullptr, neighbor_spread, options, out, live);
 }
 
-// The last resort, on the CPU whatever the device (as the paper's fallback;
-// Exec::HostExec runs it): double-double arithmetic, and an inconsistent clip
+// The passes the device does not run, on the CPU whatever the device
+// (Exec::HostExec; the paper's fallback): the tiers beyond kLastDeviceTier,
+// and the last resort, double-double arithmetic, where an inconsistent clip
 // may widen its predicate band up to 6 times tenfold. Only a handful of cells
-// ever get here.
+// ever get here. `pass` gives the tier, the precision and vertex balls.
 template <typename HostExec, typename io_t>
-void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
-                              const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                              const at::Tensor& neighbors, bool column_major, const Grid* vertex_balls,
-                              const Options& options, PositionOutputs& out) {
+void clip_chunk_on_host(const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
+                        const at::Tensor& cells, const at::Tensor& neighbors, bool column_major,
+                        const PassSettings& pass, const Grid* vertex_balls, const Options& options,
+                        PositionOutputs& out) {
   const int64_t m = cells.size(0);
   const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU).contiguous(); };
   const c10::optional<at::Tensor> batch_cpu =
@@ -232,16 +263,37 @@ void clip_chunk_double_double(const at::Tensor& points, const at::Tensor& box,
   PositionOutputs part;
   part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
   part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
-  const auto clip = [&](auto finish_by_vertex_balls) {
-    clip_chunk<HostExec, io_t, core::DoubleDouble, 160, decltype(finish_by_vertex_balls)::value>(
+  const bool double_double = pass.precision == Precision::kDoubleDouble;
+  const auto clip = [&](auto scalar, auto planes, auto finish_by_vertex_balls) {
+    using T = typename decltype(scalar)::type;
+    clip_chunk<HostExec, io_t, T, decltype(planes)::value, decltype(finish_by_vertex_balls)::value>(
         cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
-        /*band_widenings=*/6, /*rows_by_step=*/true, vertex_balls != nullptr ? &vertex_balls_cpu : nullptr,
-        /*neighbor_spread=*/c10::nullopt, options, part);
+        /*band_widenings=*/double_double ? 6 : 0, /*rows_by_step=*/true,
+        vertex_balls != nullptr ? &vertex_balls_cpu : nullptr, /*neighbor_spread=*/c10::nullopt, options, part);
+  };
+  const auto at_tier = [&](auto scalar, auto finish_by_vertex_balls) {
+    switch (pass.tier) {
+      case kLastTier: clip(scalar, std::integral_constant<int, kTierPlanes[kLastTier]>(), finish_by_vertex_balls); break;
+      case kLastTier - 1:
+        clip(scalar, std::integral_constant<int, kTierPlanes[kLastTier - 1]>(), finish_by_vertex_balls);
+        break;
+      default: clip(scalar, std::integral_constant<int, kVertexBallPlanes>(), finish_by_vertex_balls); break;
+    }
+  };
+  const auto in_precision = [&](auto finish_by_vertex_balls) {
+    // Float32 points in float32 or float64; float64 points in float64 (as run_pass).
+    if (double_double) {
+      at_tier(ScalarTag<core::DoubleDouble>(), finish_by_vertex_balls);
+    } else if (std::is_same<io_t, double>::value || pass.precision == Precision::kFloat64) {
+      at_tier(ScalarTag<double>(), finish_by_vertex_balls);
+    } else {
+      at_tier(ScalarTag<io_t>(), finish_by_vertex_balls);
+    }
   };
   if (vertex_balls != nullptr) {
-    clip(std::true_type{});
+    in_precision(std::true_type{});
   } else {
-    clip(std::false_type{});
+    in_precision(std::false_type{});
   }
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
@@ -280,10 +332,10 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
       clip_chunk_tier<Exec, io_t, double>(points, box, batch, part, neighbors, pass.tier, vertex_balls,
                                           neighbor_spread, options, out);
     };
-    if (pass.precision == Precision::kDoubleDouble) {
-      clip_chunk_double_double<typename Exec::HostExec, io_t>(points, box, batch, part, neighbors,
-                                                              Exec::kColumnMajorNeighbors, vertex_balls, options,
-                                                              out);
+    if (pass.precision == Precision::kDoubleDouble || pass.tier > kLastDeviceTier) {
+      clip_chunk_on_host<typename Exec::HostExec, io_t>(points, box, batch, part, neighbors,
+                                                        Exec::kColumnMajorNeighbors, pass, vertex_balls, options,
+                                                        out);
     } else if constexpr (std::is_same<io_t, double>::value) {
       clip_in_float64();
     } else if (pass.precision == Precision::kFloat64) {

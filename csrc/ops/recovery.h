@@ -79,8 +79,8 @@ inline PassSettings escalated(const PassSettings& pass, const RetryAsks& ask, in
       next.vertex_balls = true;
     }
   }
-  if (ask.planes) next.tier = std::min(pass.tier + 1, 2);
-  if (next.vertex_balls) next.tier = 2;  // kVertexBallPlanes
+  if (ask.planes) next.tier = std::min(pass.tier + 1, kLastTier);
+  if (next.vertex_balls) next.tier = std::max(next.tier, kLastDeviceTier);  // kVertexBallPlanes at least
   if (ask.precision) {
     next.precision = (pass.precision == Precision::kInput && !is_double) ? Precision::kFloat64
                                                                          : Precision::kDoubleDouble;

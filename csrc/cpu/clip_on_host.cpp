@@ -1,0 +1,3 @@
+#include "clip_on_host.h"
+
+TORCHVOR_CLIPS_ON_HOST();
