@@ -81,7 +81,7 @@ torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.sync
     sanitize)  # SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
                # e.g. "default TORCHVOR_CELLS=cooperative,TORCHVOR_CELL_START=box"
       for setting in ${SANITIZE_SETTINGS:-default}; do
-        for tool in memcheck racecheck; do
+        for tool in memcheck racecheck synccheck; do
           echo "$tool: $setting" | tee -a "$OUT/sanitize.log"
           env $( [ "$setting" = default ] || echo "${setting//,/ }" ) \
             compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "

@@ -162,26 +162,6 @@ def test_two_points_halves(device, dtype):
     torch.testing.assert_close(cells.second_moment, torch.full((2,), expected, dtype=dtype, device=device))
 
 
-def test_single_point_bounding_box(device, dtype):
-    """box=None with one point: a degenerate (zero-size) box, an empty cell."""
-    points = torch.tensor([[0.3, 0.4, 0.5]], dtype=dtype, device=device)
-    cells = run(points)
-    assert cells.volume.item() == 0 and cells.second_moment.item() == 0
-    assert torch.equal(cells.centroid, points)
-    assert cells.status.item() in (CellStatus.SUCCESS, CellStatus.DUPLICATE)
-
-
-def test_coplanar_points_bounding_box(device, dtype, gen):
-    """box=None around coplanar points: the box is flat, every cell has volume 0,
-    and no NaN comes out."""
-    points = rand(50, gen, dtype, device)
-    points[:, 2] = 0.5
-    cells = run(points)
-    assert (cells.volume == 0).all() and (cells.second_moment == 0).all()
-    assert torch.isfinite(cells.centroid).all()
-    assert ((cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)).all()
-
-
 @pytest.mark.parametrize("box", [([-1.0, 0.0, 0.2], [2.0, 1.5, 0.7]), ([-100.0] * 3, [100.0] * 3)],
                          ids=["near", "huge"])
 def test_explicit_larger_box(device, dtype, gen, box, vertex_balls):

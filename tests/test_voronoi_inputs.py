@@ -92,6 +92,56 @@ def test_batch_single_cloud_box_shapes(device, dtype, gen):
         assert torch.equal(a, b)
 
 
+def test_one_box_for_every_cloud(device, dtype, gen):
+    """A single box with a batch of several clouds applies to each cloud."""
+    sizes = [150, 90, 60]
+    batch = ragged_batch(sizes, device)
+    points = rand(sum(sizes), gen, dtype, device)
+    boxes = torch.tensor([[0.0, 0, 0], [1, 1, 1]], dtype=dtype, device=device).expand(3, 2, 3)
+    ref = run(points, boxes, batch=batch)
+    for box in (UNIT, boxes[:1], boxes[0]):
+        got = run(points, box, batch=batch)
+        for a, b in zip(got, ref):
+            assert torch.equal(a, b)
+    moved = torchvor.lloyd(points, UNIT, iters=2, batch=batch)
+    assert torch.equal(moved, torchvor.lloyd(points, boxes, iters=2, batch=batch))
+    with pytest.raises(ValueError, match="batch refers to 3 point clouds but box holds 2"):
+        torchvor.voronoi(points, boxes[:2], batch=batch)
+
+
+def test_flat_box_is_an_error(device, dtype, gen):
+    """A box of zero size along an axis holds no volume: an error naming the axis,
+    whether the box is given or derived from coplanar points (box=None)."""
+    points = rand(50, gen, dtype, device)
+    points[:, 2] = 0.5
+    with pytest.raises(ValueError, match="flat along z .*box=None"):
+        torchvor.voronoi(points)
+    with pytest.raises(ValueError, match="flat along z"):
+        torchvor.voronoi(points, ([0, 0, 0.5], [1, 1, 0.5]))
+    with pytest.raises(ValueError, match="flat along x"):
+        torchvor.voronoi(points[:1])  # one point: its bounding box is a point
+    with pytest.raises(ValueError, match="flat along z"):
+        torchvor.cvt_energy(points)
+    with pytest.raises(ValueError, match="flat along z"):
+        torchvor.lloyd(points, iters=1)
+    # An empty cloud's box is never used: a flat one is fine.
+    batch = torch.tensor([0] * 50, device=device)
+    boxes = torch.tensor([[[0.0, 0, 0], [1, 1, 1]], [[0.0, 0, 0], [0, 0, 0]]], dtype=dtype, device=device)
+    cells = torchvor.voronoi(points, boxes, batch=batch)
+    assert torch.isclose(cells.volume.double().sum(), torch.tensor(1.0, dtype=torch.float64, device=device))
+
+
+def test_nan_points_named_with_a_derived_box(device, dtype):
+    """box=None derives a NaN box from NaN points: the error names the points."""
+    points = torch.rand(30, 3, dtype=dtype, device=device)
+    points[7, 0] = float("nan")
+    with pytest.raises(ValueError, match="points contains NaN"):
+        torchvor.voronoi(points)
+    batch = torch.tensor([0] * 15 + [1] * 15, device=device)
+    with pytest.raises(ValueError, match="points contains NaN"):
+        torchvor.voronoi(points, batch=batch)
+
+
 def test_non_contiguous_points(device, dtype, gen):
     points = rand(400, gen, dtype, device).t().contiguous().t()
     assert not points.is_contiguous()
@@ -224,8 +274,8 @@ def test_bad_batch(device):
         torchvor.voronoi(points, box, batch=good[:-1])
     with pytest.raises(TypeError, match="batch"):
         torchvor.voronoi(points, box, batch=good.int())
-    with pytest.raises(ValueError, match="box"):  # 2 clouds, 1 box
-        torchvor.voronoi(points, box[:1], batch=good)
+    with pytest.raises(ValueError, match="box holds 2"):  # 3 clouds, 2 boxes
+        torchvor.voronoi(points, box, batch=ragged_batch([5, 5, 10], device))
     with pytest.raises(ValueError, match="box"):  # several boxes without batch
         torchvor.voronoi(points, box)
 
@@ -251,7 +301,7 @@ def test_on_failure_values(device, gen):
 
 def sphere_around_centre(n, dtype, device):
     """A point at the centre of the unit cube and n points on a sphere around it
-    (Fibonacci spiral): the centre cell has n facets, more than any cell array."""
+    (Fibonacci spiral): the centre cell has n facets."""
     i = torch.arange(n, dtype=torch.float64) + 0.5
     phi = torch.acos(1 - 2 * i / n)
     theta = np.pi * (1 + 5 ** 0.5) * i
@@ -259,11 +309,22 @@ def sphere_around_centre(n, dtype, device):
     return torch.cat([torch.full((1, 3), 0.5, dtype=torch.float64), 0.5 + 0.3 * s]).to(dtype).to(device)
 
 
-def test_failure_reporting(device, dtype, gen, cells_impl):
-    """A cell that cannot be represented (400 facets) is reported, never silent:
-    "raise" -> RuntimeError, "warn" -> RuntimeWarning, "flag" -> quiet; a failure
-    status and NaN outputs for that cell, exact results for the others."""
+def test_many_faced_cell_computed(device, dtype, gen, cells_impl):
+    """A cell of 400 facets, more than the device's arrays hold, is finished at the
+    host's larger tiers: exact, like the cells around it."""
     points = sphere_around_centre(400, dtype, device)
+    cells = run(points, UNIT)
+    check_global(cells, points, [box_of(points, UNIT)], dtype)
+    check_against_oracle(cells, points, box_of(points, UNIT), [0, *range(1, 401, 23)], RTOL[dtype])
+
+
+def test_failure_reporting(device, gen):
+    """A cell that cannot be represented (4200 facets, more than the largest tier
+    holds) is reported, never silent: "raise" -> RuntimeError, "warn" ->
+    RuntimeWarning, "flag" -> quiet; a failure status and NaN outputs for that
+    cell, exact results for the others."""
+    dtype = torch.float32
+    points = sphere_around_centre(4200, dtype, device)
     with pytest.raises(RuntimeError, match="could not be computed"):
         torchvor.voronoi(points, UNIT, on_failure="raise")
     with pytest.warns(RuntimeWarning, match="could not be computed"):
@@ -280,7 +341,7 @@ def test_failure_reporting(device, dtype, gen, cells_impl):
     assert torch.isnan(cells.volume[0]) and torch.isnan(cells.centroid[0]).all()
     assert torch.isnan(cells.second_moment[0])
     assert torch.isfinite(cells.volume[1:]).all() and torch.isfinite(cells.centroid[1:]).all()
-    check_against_oracle(cells, points, box_of(points, UNIT), range(1, 401, 23), RTOL[dtype])
+    check_against_oracle(cells, points, box_of(points, UNIT), range(1, 4201, 400), RTOL[dtype])
 
 
 @pytest.mark.skipif(not has_cuda, reason="needs CUDA")

@@ -111,9 +111,9 @@ ValueChecks knn_value_checks(const at::Tensor& points, const at::Tensor& queries
   return values;
 }
 
-void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
-                          const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                          int64_t memory_budget) {
+int64_t check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
+                             const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                             int64_t memory_budget) {
   check_points(points, "points");
   check_like_points(points, box, "box");
   TORCH_CHECK_VALUE(box.dim() == 3 && box.size(1) == 2 && box.size(2) == 3,
@@ -125,28 +125,43 @@ void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
   const int64_t batches = check_batch(batch, n, points, "batch");
   TORCH_CHECK_VALUE(batch.has_value() || num_boxes == 1,
                     "torchvor: without a batch vector, box must have shape (1, 2, 3)");
-  TORCH_CHECK_VALUE(batches <= num_boxes, "torchvor: batch refers to ", batches,
-                    " point clouds but box holds ", num_boxes);
+  TORCH_CHECK_VALUE(num_boxes == 1 || batches <= num_boxes, "torchvor: batch refers to ", batches,
+                    " point clouds but box holds ", num_boxes, " boxes (give one box for all, or one per cloud)");
+  return batches;
 }
 
 void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes) {
+  // The points first: with box=None the box is their bounding box, and a
+  // NaN point would otherwise be reported as a NaN box.
+  const double* row = bounds.data_ptr<double>();
+  for (int64_t b = 0; b < bounds.size(0); ++b) {
+    if (row[7 * b + 6] == 0.0) continue;  // no points
+    for (int v = 0; v < 6; ++v) {  // a NaN or Inf point makes its bounds NaN or Inf
+      TORCH_CHECK_VALUE(std::isfinite(row[7 * b + v]), "torchvor: points contains NaN or Inf coordinates");
+    }
+  }
   for (int64_t v = 0; v < 6 * num_boxes; ++v) {
     TORCH_CHECK_VALUE(std::isfinite(box[v]), "torchvor: box contains NaN or Inf coordinates");
   }
+  static const char* const kAxis[3] = {"x", "y", "z"};
   for (int64_t b = 0; b < num_boxes; ++b) {
     for (int a = 0; a < 3; ++a) {
       TORCH_CHECK_VALUE(box[6 * b + a] <= box[6 * b + 3 + a],
                         "torchvor: box must satisfy lo <= hi on every axis");
+      // A flat box holds no volume: every cell would be empty. Only the
+      // boxes of clouds with points matter (an empty cloud's box is unused).
+      const bool has_points = b >= bounds.size(0) || row[7 * b + 6] != 0.0;
+      TORCH_CHECK_VALUE(!has_points || box[6 * b + a] < box[6 * b + 3 + a], "torchvor: box",
+                        num_boxes > 1 ? " " + std::to_string(b) : std::string(), " is flat along ", kAxis[a],
+                        " (lo = hi = ", box[6 * b + a], "): Voronoi cells need a box of positive size on every "
+                        "axis. With box=None the box is the points' bounding box, so the points are coplanar "
+                        "there: give a box explicitly");
     }
   }
   // Inside the box: each batch element's bounding box inside its box (both
   // exact in double, so this is the comparison lo <= p <= hi itself).
-  const double* row = bounds.data_ptr<double>();
   for (int64_t b = 0; b < bounds.size(0); ++b, row += 7) {
     if (row[6] == 0.0) continue;  // no points
-    for (int v = 0; v < 6; ++v) {  // a NaN or Inf point makes its bounds NaN or Inf
-      TORCH_CHECK_VALUE(std::isfinite(row[v]), "torchvor: points contains NaN or Inf coordinates");
-    }
     for (int a = 0; a < 3; ++a) {
       TORCH_CHECK_VALUE(row[a] >= box[6 * b + a] && row[3 + a] <= box[6 * b + 3 + a],
                         "torchvor: points must lie inside box (lo <= p <= hi)");

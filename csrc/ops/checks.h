@@ -41,15 +41,17 @@ int64_t check_knn_inputs(const at::Tensor& points, const at::Tensor& queries, in
 ValueChecks knn_value_checks(const at::Tensor& points, const at::Tensor& queries);
 
 // Validates the arguments of torchvor::voronoi_cells but the values of points
-// and box (check_voronoi_values).
-void check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
-                          const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                          int64_t memory_budget);
+// and box (check_voronoi_values). Returns the number of point clouds (1
+// without a batch): a single box (1, 2, 3) applies to each of them.
+int64_t check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
+                             const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                             int64_t memory_budget);
 
-// The box is finite with lo <= hi, the points are finite (non-finite bounds)
-// and every point lies inside its box, from what the host read: `bounds`
-// (B, 7) rows of the points' bounding box and count per batch element
-// (grid.h, point_bounds) and the box (B, 2, 3) values.
+// The points are finite (non-finite bounds), the box of every cloud that has
+// points is finite with lo < hi on each axis, and every point lies inside
+// its box, from what the host read: `bounds` (B, 7) rows of the points'
+// bounding box and count per batch element (grid.h, point_bounds) and the
+// box (B, 2, 3) values.
 void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes);
 
 // Validates the arguments of torchvor::lloyd_step that voronoi_cells does not

@@ -34,7 +34,7 @@ struct LloydMoveFunctor {
   const T* centroid;       // (N, 3), by position
   const int8_t* status;    // (N,), by position
   const T* box;            // (B, 2, 3)
-  const int64_t* batch;    // (N,), the batch element of each caller's row; nullptr: one box
+  const int64_t* batch;    // (N,), the batch element of each caller's row; nullptr or B == 1: one box
   T* moved;                // (N, 3), by position
   double* displacement2;   // (N,), by position: |moved - point|^2 / |hi - lo|^2
 
@@ -109,11 +109,12 @@ LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tenso
     // (energy, largest displacement2) in float64, then the histogram's int32
     // bins, two a float64 word, so that one copy reads all.
     const at::Tensor summary = at::zeros({2 + (histogram_bins + 1) / 2}, points.options().dtype(at::kDouble));
+    const bool one_box = !batch.has_value() || box.size(0) == 1;  // one box for every cloud
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::lloyd_step", [&] {
       Exec::for_each(n, LloydMoveFunctor<scalar_t>{
                             points.data_ptr<scalar_t>(), cells.order.data_ptr<int64_t>(),
                             centroid.data_ptr<scalar_t>(), status.data_ptr<int8_t>(), box.data_ptr<scalar_t>(),
-                            batch.has_value() ? batch->data_ptr<int64_t>() : nullptr, moved.data_ptr<scalar_t>(),
+                            one_box ? nullptr : batch->data_ptr<int64_t>(), moved.data_ptr<scalar_t>(),
                             displacement2.data_ptr<double>()});
     });
     if (n > 0) {  // an empty reduction is an error; the zeros stand

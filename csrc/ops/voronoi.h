@@ -202,11 +202,12 @@ template <typename Exec>
 VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
                                const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
                                int64_t memory_budget, bool grid_order, const LaunchOnOutputs& on_outputs) {
-  check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
+  const int64_t clouds = check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
   const Options options = Options::from_environment();
-  const int64_t num_boxes = box_in.size(0);
+  // One box for several clouds: each cloud gets its copy.
+  const at::Tensor box = (box_in.size(0) == 1 && clouds > 1 ? box_in.expand({clouds, 2, 3}) : box_in).contiguous();
+  const int64_t num_boxes = box.size(0);
   const at::Tensor points = points_in.contiguous();
-  const at::Tensor box = box_in.contiguous();
   const c10::optional<at::Tensor> batch =
       batch_in.has_value() ? c10::optional<at::Tensor>(batch_in->contiguous()) : c10::nullopt;
   // One read from the device for the value checks and the grid: the points'
