@@ -219,8 +219,9 @@ def test_box_of_numbers_copied_once(device):
     """A box given as numbers reaches the op through one device copy per (values,
     dtype, device), kept for later calls (ops._box_for_call); other boxes are
     converted on every call. The results equal as_box's either way."""
-    from torchvor.ops import _box_for_call, as_box
+    from torchvor.ops import _DEVICE_BOXES, _box_for_call, as_box
 
+    _DEVICE_BOXES.clear()  # other tests' boxes would otherwise fill the cache, which then starts over
     points = torch.rand(20, 3, device=device)
     first = _box_for_call(points, UNIT, None)
     assert _box_for_call(points, ([0, 0, 0], [1, 1, 1]), None) is first  # equal numbers, one copy
