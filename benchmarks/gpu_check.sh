@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, then run the steps named (default: cudatests):
 # the tests (CPU and CUDA), the benchmarks, profiles and sanitizers; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|compare|lloyd10m|profile|timeline|sanitize|ncu|build]...
+#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|compare|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
 # compare needs BASELINE=<source tree of another commit> (e.g. `git archive <commit> | tar -x -C .baseline`):
 # it is built beside this tree, its CUDA outputs compared bit for bit, and both timed in turns.
 set -u -o pipefail
@@ -60,6 +60,10 @@ PY
           PYTHONPATH="$build" python3 "$REPO/scripts/compare_builds.py" time /tmp/blue_10m.pt /tmp/perturbed_10m.pt /tmp/white_10m.pt --device cuda
         done
       done) 2>&1 | tee "$OUT/compare_time.log" ;;
+    fuzz)  # the fuzzing campaign on CUDA, thread and warp cells: FUZZ_CASES cases (FUZZ_SEED, FUZZ_MAX_N)
+      python3 tests/fuzz.py --device cuda --cells all --cases ${FUZZ_CASES:-10000} --seed ${FUZZ_SEED:-1} \
+        --max-n ${FUZZ_MAX_N:-1000000} --sample ${FUZZ_SAMPLE:-4} --compare-max-n ${FUZZ_COMPARE_MAX_N:-5000} \
+        --quiet --json "$OUT/fuzz.json" 2>&1 | tail -60 | tee "$OUT/fuzz.log" || status=1 ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,
                # the op's default k; TIMELINE_SIZES)
@@ -86,7 +90,7 @@ torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.sync
           env $( [ "$setting" = default ] || echo "${setting//,/ }" ) \
             compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
 import torch, torchvor, torchvor.samples
-p = torchvor.samples.white_noise(100000, device='cuda')
+p = torchvor.samples.white_noise(${SANITIZE_N:-100000}, device='cuda')
 torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
 r = torchvor.lloyd(p, ([0,0,0],[1,1,1]), iters=2)  # two lloyd_step ops
 torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(), 'lloyd', r.sum().item())
