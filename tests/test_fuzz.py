@@ -1,0 +1,193 @@
+"""The fuzzing campaign's CI slice (tests/fuzz.py): a fixed campaign seed,
+small cases of every kind in both dtypes under both cell implementations,
+on every device; and checks that the fuzzer itself replays its cases and
+catches wrong results.
+
+Deterministic: the cases follow from CI_SEED alone (no OS-random seed), so a
+failure replays with the command printed next to each problem.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+import torchvor
+from torchvor import CellStatus
+
+import fuzz
+
+CI_SEED = 44
+CI_CASES = 90  # six rounds of the 15 kinds: each kind three times in each dtype
+CI_MAX_N = 3000
+
+
+def test_fuzz_ci_slice(device):
+    """Cases 0..CI_CASES-1 of campaign CI_SEED (sizes up to CI_MAX_N, float32
+    and float64, TORCHVOR_CELLS=thread and =cooperative): no failed cell, no
+    silently wrong cell, every cloud's volumes summing to its box, no
+    unexpected exception, and the deliberately invalid inputs rejected with
+    a ValueError naming the cause."""
+    report = fuzz.run_campaign(CI_SEED, range(CI_CASES), device=device.type, max_n=CI_MAX_N, dtype="both",
+                               cells="all")
+    counts = report.counts
+    text = fuzz.summary(report)
+    assert counts["cases"] == CI_CASES
+    assert set(report.per_kind) == set(fuzz.KINDS), text
+    assert counts["expected_errors"] == 2 * len(range(fuzz.INVALID_EVERY - 1, CI_CASES, fuzz.INVALID_EVERY)), text
+    assert counts["certified"] > 0, text
+    assert counts["failed_cells"] == 0, text
+    assert counts["silently_wrong"] == 0, text
+    assert counts["wrong_volume_sums"] == 0, text
+    assert counts["unexpected_exceptions"] == 0, text
+
+
+def test_cases_replay_alone():
+    """A case depends only on (seed, index) and the generator's settings:
+    drawn again, or after other cases, it is the same input."""
+    first = fuzz.make_case(CI_SEED, 17, max_n=CI_MAX_N)
+    fuzz.make_case(CI_SEED, 16, max_n=CI_MAX_N)
+    again = fuzz.make_case(CI_SEED, 17, max_n=CI_MAX_N)
+    assert first.kind == again.kind and first.dtype == again.dtype and first.box_arg == again.box_arg
+    np.testing.assert_array_equal(first.points, again.points)
+    np.testing.assert_array_equal(first.boxes, again.boxes)
+    assert fuzz.make_case(CI_SEED + 1, 17, max_n=CI_MAX_N).points.tobytes() != first.points.tobytes()
+
+
+def test_cases_are_valid_inputs_in_their_dtype():
+    """Every valid case's points and boxes are values of its dtype, each
+    point inside its cloud's box, each box non-flat; the batch is sorted."""
+    for index in range(2 * len(fuzz.KINDS)):
+        case = fuzz.make_case(CI_SEED, index, max_n=CI_MAX_N)
+        if case.expect_error:
+            continue
+        np_dtype = np.float32 if case.dtype == torch.float32 else np.float64
+        np.testing.assert_array_equal(case.points.astype(np_dtype).astype(np.float64), case.points)
+        np.testing.assert_array_equal(case.boxes.astype(np_dtype).astype(np.float64), case.boxes)
+        if case.batch is not None:
+            assert np.all(np.diff(case.batch) >= 0)
+        for _, members, (lo, hi) in case.clouds():
+            assert np.all(hi > lo), case.describe()
+            assert np.all(case.points[members] >= lo) and np.all(case.points[members] <= hi), case.describe()
+
+
+def _corrupting(monkeypatch, change):
+    """fuzz's torchvor.voronoi replaced by one whose result `change` edits."""
+    real = torchvor.voronoi
+
+    def voronoi(*args, **kwargs):
+        cells = real(*args, **kwargs)
+        cells = torchvor.VoronoiCells(*(t.clone() for t in cells))
+        change(cells)
+        return cells
+
+    monkeypatch.setattr(fuzz.torchvor, "voronoi", voronoi)
+
+
+def _white_noise_case():
+    index = list(fuzz.KINDS).index("white_noise") + len(fuzz.KINDS)  # the second round: float64
+    case = fuzz.make_case(CI_SEED, index, max_n=CI_MAX_N)
+    assert case.kind == "white_noise" and case.dtype == torch.float64 and case.n > 20
+    return index
+
+
+def test_fuzzer_flags_a_silently_wrong_cell(monkeypatch):
+    """The largest cell's volume 1e-5 too large (status SUCCESS): the oracle
+    (which samples the largest cell) and the volume sum both catch it."""
+    index = _white_noise_case()
+
+    def change(cells):
+        cells.volume[int(torch.argmax(cells.volume))] *= 1 + 1e-5
+
+    _corrupting(monkeypatch, change)
+    report = fuzz.run_campaign(CI_SEED, [index], max_n=CI_MAX_N)
+    assert report.counts["silently_wrong"] == 1 and report.counts["wrong_volume_sums"] == 1
+    assert not report.ok()
+    wrong = [p for p in report.problems if p.category == "silently_wrong"]
+    assert "volume" in wrong[0].message and f"--case {index}" in wrong[0].replay
+
+
+def test_fuzzer_checks_float32_suspects(monkeypatch):
+    """In float32, the cell whose volume differs most from torchvor's float64
+    cell of the same points goes to the oracle even outside the sample:
+    the smallest cell 1e-3 too large is caught with no sampled cell."""
+    index = list(fuzz.KINDS).index("white_noise")  # the first round: float32
+    case = fuzz.make_case(CI_SEED, index, max_n=CI_MAX_N)
+    assert case.dtype == torch.float32 and case.n > 20
+
+    def change(cells):
+        if cells.volume.dtype == torch.float32:  # not the float64 cells it is compared with
+            cells.volume[int(torch.argmin(cells.volume))] *= 1 + 1e-3
+
+    _corrupting(monkeypatch, change)
+    report = fuzz.run_campaign(CI_SEED, [index], max_n=CI_MAX_N, sample=0)
+    assert report.counts["silently_wrong"] == 1
+    assert "volume" in report.problems[0].message
+
+
+def test_fuzzer_flags_failed_cells_and_false_duplicates(monkeypatch):
+    """A cell with a failure status is counted as failed; a DUPLICATE status
+    on a point that has no copy is silently wrong."""
+    index = _white_noise_case()
+
+    def change(cells):
+        cells.status[0] = CellStatus.BOUNDARY_ERROR
+        cells.volume[0] = float("nan")
+        cells.status[1] = CellStatus.DUPLICATE
+
+    _corrupting(monkeypatch, change)
+    report = fuzz.run_campaign(CI_SEED, [index], max_n=CI_MAX_N, sample=0)
+    assert report.counts["failed_cells"] == 1
+    assert report.counts["silently_wrong"] == 1
+    assert not report.ok()
+
+
+def test_fuzzer_flags_unexpected_exceptions(monkeypatch):
+    """An exception from a valid input is counted; so are an invalid input
+    whose error is not a ValueError naming its cause, and one that raises
+    nothing."""
+    index = _white_noise_case()
+    invalid = fuzz.INVALID_EVERY - 1
+    assert fuzz.make_case(CI_SEED, invalid, max_n=CI_MAX_N).expect_error
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(fuzz.torchvor, "voronoi", boom)
+    report = fuzz.run_campaign(CI_SEED, [index, invalid], max_n=CI_MAX_N)
+    assert report.counts["unexpected_exceptions"] == 2 and report.counts["expected_errors"] == 0
+    assert all("boom" in p.message for p in report.problems)
+    monkeypatch.setattr(fuzz.torchvor, "voronoi", lambda *args, **kwargs: None)
+    report = fuzz.run_campaign(CI_SEED, [invalid], max_n=CI_MAX_N)
+    assert report.counts["unexpected_exceptions"] == 1
+    assert "raised no ValueError" in report.problems[0].message
+
+
+def test_cells_impl_is_restored(monkeypatch):
+    """A run under TORCHVOR_CELLS=thread or =cooperative leaves the variable
+    as it found it, set or unset."""
+    monkeypatch.setenv("TORCHVOR_CELLS", "thread")
+    with fuzz._cells_impl("cooperative"):
+        assert fuzz.os.environ["TORCHVOR_CELLS"] == "cooperative"
+    assert fuzz.os.environ["TORCHVOR_CELLS"] == "thread"
+    monkeypatch.delenv("TORCHVOR_CELLS")
+    with fuzz._cells_impl("thread"):
+        assert fuzz.os.environ["TORCHVOR_CELLS"] == "thread"
+    assert "TORCHVOR_CELLS" not in fuzz.os.environ
+
+
+def test_comparison_with_the_cpu_flags_differences():
+    """The CUDA run's comparison with the CPU (here CPU against CPU): equal
+    results pass; a status or a volume beyond the tolerance is flagged."""
+    index = _white_noise_case()
+    case = fuzz.make_case(CI_SEED, index, max_n=CI_MAX_N)
+    campaign = fuzz.Campaign(CI_SEED, max_n=CI_MAX_N)
+    points, box, batch = case.arguments("cpu")
+    cells = torchvor.voronoi(points, box, batch=batch)
+    campaign.compare_with_cpu(case, "default", cells)
+    assert campaign.report.counts["silently_wrong"] == 0
+    changed = torchvor.VoronoiCells(*(t.clone() for t in cells))
+    changed.volume[3] *= 1 + 1e-8
+    changed.status[5] = CellStatus.DUPLICATE
+    campaign.compare_with_cpu(case, "default", changed)
+    assert campaign.report.counts["silently_wrong"] == 2
+    assert "differ from the CPU's" in campaign.report.problems[0].message
