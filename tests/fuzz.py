@@ -82,7 +82,7 @@ CELL_RTOL = {torch.float64: 1e-9, torch.float32: 1e-4}
 # the sum of a cloud's volumes, relative to its box volume
 SUM_RTOL = {torch.float64: 1e-9, torch.float32: 1e-4}
 CELL_IMPLS = ("default", "thread", "cooperative")  # "all" runs thread and cooperative
-EXACT_MAX_FACETS = 40  # the exact oracle enumerates plane triples: ~10 s at 40 facets
+EXACT_MAX_FACETS = 40  # the exact oracle enumerates every triple of planes: its cost grows as the cube of the facets
 SLOWEST_CASES = 5  # the report lists the slowest cases (their time covers the checks too)
 COUNTERS = ("cases", "runs", "cells", "certified", "oracle_skipped", "failed_cells", "silently_wrong",
             "wrong_volume_sums", "unexpected_exceptions", "timeouts", "expected_errors", "second_moment_off")
