@@ -201,7 +201,7 @@ int compare(const char* name, const Points& points, int first, int cells, int k,
     const int count = int(neighbors.size());
     core::ConvexCell<float, MAX_PLANES, kMaxTriangles> thread_cell;
     const core::CellIntegrals<float> expected = core::compute_cell(
-        thread_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, 0, true, finish);
+        thread_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, true, finish);
     core::CooperativeCellArrays<float, MAX_PLANES, kMaxTriangles> arrays;
     std::memset(static_cast<void*>(&arrays), 0xff, sizeof(arrays));  // poison: unwritten slots show
     Board board(N);
@@ -211,7 +211,7 @@ int compare(const char* name, const Points& points, int first, int cells, int k,
       lanes.emplace_back([&, l] {
         core::CooperativeCell<float, MAX_PLANES, kMaxTriangles, EmulatedLanes<N>> cell(
             arrays, EmulatedLanes<N>{l, &board});
-        got[l] = core::compute_cell(cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, 0,
+        got[l] = core::compute_cell(cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance,
                                     true, finish);
       });
     }
@@ -228,7 +228,7 @@ int compare(const char* name, const Points& points, int first, int cells, int k,
     if (thread_out_of_planes) {
       core::ConvexCell<float, MAX_PLANES + core::kBoxPlanes, kMaxTriangles> roomier_cell;
       roomier = core::compute_cell(roomier_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box,
-                                   tolerance, 0, true, finish);
+                                   tolerance, true, finish);
     }
     for (int l = 0; l < N; ++l) {
       const bool agrees = same_cell(got[l], expected) ||

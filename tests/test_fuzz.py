@@ -41,6 +41,23 @@ def test_fuzz_ci_slice(device):
     assert counts["unexpected_exceptions"] == 0, text
 
 
+# Cases of earlier campaigns that once failed, replayed on every device:
+# (seed, index, max_n, what went wrong).
+REGRESSIONS = [
+    (2, 232, 20000, "close pairs 1-4 ulps apart (float64): BOUNDARY_ERROR after double-double"),
+    (2, 625, 20000, "density r^7.8 about a point (float64): BOUNDARY_ERROR after double-double"),
+    (1, 17, 1000000, "points on a 5 x 5 x 5 grid through the walls (float64): BOUNDARY_ERROR after double-double"),
+]
+
+
+def test_fuzz_regressions(device):
+    """Every cell of the cases in REGRESSIONS computed and right, under both
+    cell implementations."""
+    for seed, index, max_n, what in REGRESSIONS:
+        report = fuzz.run_campaign(seed, [index], device=device.type, max_n=max_n, dtype="both", cells="all")
+        assert report.ok(), f"{what}\n{fuzz.summary(report)}"
+
+
 def test_cases_replay_alone():
     """A case depends only on (seed, index) and the generator's settings:
     drawn again, or after other cases, it is the same input."""

@@ -12,6 +12,7 @@
 
 #include "common.h"
 #include "double_double.h"
+#include "exact_predicates.h"
 #include "lanes.h"
 #include "status.h"
 
@@ -128,6 +129,34 @@ TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Pla
   } else {
     return cramer_point(pa, pb, pc);
   }
+}
+
+// The same in double-double (the last-resort pass), whose bisectors' normals
+// are exact (-(p - seed)): of a pair of nearly parallel planes (normals
+// within half the first's length), the second is taken relative to the
+// first, and for two bisectors the difference's offset, (|n_b|^2 -
+// |n_a|^2) / 2, is computed as (n_b - n_a) . (n_b + n_a) / 2, which keeps
+// its digits where the offsets' own difference would cancel. Any pair, not
+// only b and c against a: close pairs of points (a few ulps apart) make a
+// nearly parallel pair beside a plane at any angle. `bisector`: which of
+// a, b, c are bisectors (the others are box faces).
+TV_HD Vec3<DoubleDouble> intersect_planes(const Plane<DoubleDouble>& pa, const Plane<DoubleDouble>& pb,
+                                          const Plane<DoubleDouble>& pc, const bool (&bisector)[3]) {
+  using P = Plane<DoubleDouble>;
+  const auto near = [](const P& first, const P& second) {
+    return squared_norm(second.normal - first.normal) < DoubleDouble(0.25) * squared_norm(first.normal);
+  };
+  const auto relative = [](const P& first, const P& second, bool bisectors) -> P {
+    const Vec3<DoubleDouble> e = second.normal - first.normal;
+    return {e, bisectors ? DoubleDouble(0.5) * dot(e, second.normal + first.normal) : second.offset - first.offset};
+  };
+  const bool ab = near(pa, pb), ac = near(pa, pc);
+  if (ab || ac) {
+    return cramer_point(pa, ab ? relative(pa, pb, bisector[0] && bisector[1]) : pb,
+                        ac ? relative(pa, pc, bisector[0] && bisector[2]) : pc);
+  }
+  if (near(pb, pc)) return cramer_point(pa, pb, relative(pb, pc, bisector[1] && bisector[2]));
+  return cramer_point(pa, pb, pc);
 }
 
 // The bisector of the seed (origin) and a neighbour at r (|r|^2 = r2), the
@@ -533,6 +562,15 @@ struct CompactTriangles {
   }
 };
 
+// The homogeneous coordinates of a double-double cell's vertices, by slot
+// (exact_predicates.h); nothing for other cells.
+template <bool kExact, int N>
+struct HomogeneousSlots {
+  exact::HomogeneousVertex slot[N];
+};
+template <int N>
+struct HomogeneousSlots<false, N> {};
+
 // kCompact: the triangles in CompactTriangles (float32, at most 32 planes).
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES, bool kCompact = false>
 struct ConvexCell {
@@ -543,6 +581,9 @@ struct ConvexCell {
   using Id = typename Ids::Id;
   using Corners = typename Ids::Corners;
   static constexpr Id kNone = static_cast<Id>(-1);
+  // Double-double cells (the last resort, on the host) clip by exact
+  // predicates (exact_predicates.h): their clips are never inconsistent.
+  static constexpr bool kExactPredicates = std::is_same<T, DoubleDouble>::value;
   static_assert(MAX_PLANES <= kNone, "plane ids must stay below kNone");
   static_assert(!kCompact || (std::is_same<T, float>::value && MAX_PLANES <= 32),
                 "compact triangles hold float32 coordinates and 5-bit plane ids");
@@ -564,8 +605,8 @@ struct ConvexCell {
   int32_t num_triangles;
   T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
   T tolerance;       // relative tolerance of the clipping predicate
-  int max_band_widenings;  // retries of an inconsistent clip with a 10x wider band
   int8_t status;
+  HomogeneousSlots<kExactPredicates, MAX_TRIANGLES> homogeneous;  // last: an empty one fills padding
 
   TV_HD Lanes group() const { return {}; }
 
@@ -587,8 +628,8 @@ struct ConvexCell {
   }
 
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 dual triangles.
-  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
-    init_faces_and_settings(lo, hi, relative_tolerance, band_widenings);
+  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance) {
+    init_faces_and_settings(lo, hi, relative_tolerance);
     num_planes = kBoxPlanes;
     num_triangles = 8;
     radius2 = T(0);
@@ -603,8 +644,8 @@ struct ConvexCell {
   // unwritten: no vertex of the tetrahedron lies on them and clips add only
   // bisectors, so no triangle ever names them and plane() never reads them.
   // Their 24 words a cell would be stores to local memory that nothing reads.
-  TV_HD void init_tetrahedron(const StartTetrahedron<T>& start, T relative_tolerance, int band_widenings) {
-    init_settings(relative_tolerance, band_widenings);
+  TV_HD void init_tetrahedron(const StartTetrahedron<T>& start, T relative_tolerance) {
+    init_settings(relative_tolerance);
     num_planes = kBoxPlanes + 4;
     num_triangles = 4;
     radius2 = T(0);
@@ -614,6 +655,11 @@ struct ConvexCell {
       const Vec3<T> vertex = triangle.set(t, start.vertex[t], from_bytes(start.corners[t] + 0x060606u));
       radius2 = max_of(radius2, squared_norm(vertex));
     }
+#if !defined(__CUDA_ARCH__)
+    if constexpr (kExactPredicates) {
+      for (int t = 0; t < 4; ++t) set_homogeneous(t, triangle.corners(t));
+    }
+#endif
   }
 
   // Store triangle t = (a, b, c) and its vertex; returns the vertex.
@@ -623,7 +669,16 @@ struct ConvexCell {
   // The same with the planes of a, b, c already at hand.
   TV_HD CachedVertex<T> set_triangle(int t, Id a, Id b, Id c, const Plane<T>& pa,
                                      const Plane<T>& pb, const Plane<T>& pc) {
-    const Vec3<T> position = triangle.set(t, intersect_planes(pa, pb, pc), pack(a, b, c));
+    Vec3<T> vertex;
+    if constexpr (kExactPredicates) {
+      vertex = intersect_planes(pa, pb, pc, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes});
+#if !defined(__CUDA_ARCH__)
+      homogeneous.slot[t] = exact::homogeneous(pa, pb, pc);
+#endif
+    } else {
+      vertex = intersect_planes(pa, pb, pc);
+    }
+    const Vec3<T> position = triangle.set(t, vertex, pack(a, b, c));
     return {position, squared_norm(position)};
   }
 
@@ -672,24 +727,19 @@ struct ConvexCell {
     const Plane<T> p = bisector_plane(r, r2);
     // Vertices within the tolerance band of the plane are kept. If the removed
     // region is then not a disc (inconsistent predicates: vertices of nearly
-    // parallel planes, computed with errors beyond the band), fail, or in the
-    // last-resort pass widen the band for this plane only, tenfold at a time:
-    // far enough from the plane, every classification agrees with the exact
-    // one, and the volume error stays of the order of the band.
+    // parallel planes, computed with errors beyond the band), fail: a later
+    // pass retries in wider arithmetic, and the last, double-double, decides
+    // by exact predicates, which are never inconsistent.
     Mask clipped;
     T kept_radius2;  // the largest |vertex|^2 of the vertices the plane keeps
     Id next[MAX_PLANES];
     PlaneSet on_boundary;
     int boundary_length = 0;
     Id start = kNone;
-    T band = tolerance;
-    for (int attempt = 0;; ++attempt, band = band * T(10)) {
-      if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
-      if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
-      if (num_planes == MAX_PLANES) compact_planes();
-      if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
-      if (removed_boundary(clipped, next, on_boundary, boundary_length, start)) break;
-    }
+    if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
+    if (num_planes == MAX_PLANES) compact_planes();
+    if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
+    if (!removed_boundary(clipped, next, on_boundary, boundary_length, start)) return fail(kBoundaryError);
     const int removed = clipped.count();
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int new_plane = num_planes++;
@@ -744,14 +794,13 @@ struct ConvexCell {
   }
 
   // What the box start sets: the box's faces (planes 0-5) and the settings.
-  TV_HD void init_faces_and_settings(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
+  TV_HD void init_faces_and_settings(Vec3<T> lo, Vec3<T> hi, T relative_tolerance) {
     for (int q = 0; q < kBoxPlanes; ++q) box_face[q] = box_plane(q, lo, hi);
-    init_settings(relative_tolerance, band_widenings);
+    init_settings(relative_tolerance);
   }
   // What every start sets.
-  TV_HD void init_settings(T relative_tolerance, int band_widenings) {
+  TV_HD void init_settings(T relative_tolerance) {
     tolerance = relative_tolerance;
-    max_band_widenings = band_widenings;
     status = kSuccess;
   }
 
@@ -762,6 +811,11 @@ struct ConvexCell {
   // once (the GPU kernel is bound by local-memory latency); the mask words
   // are built in registers.
   TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped, T& kept_radius2) const {
+    if constexpr (kExactPredicates) {
+#if !defined(__CUDA_ARCH__)
+      return classify_exactly(p, clipped, kept_radius2);
+#endif
+    }
     uint32_t any_clipped = 0u;
     kept_radius2 = T(0);
     TV_UNROLL
@@ -780,6 +834,40 @@ struct ConvexCell {
     return any_clipped != 0u;
   }
 
+#if !defined(__CUDA_ARCH__)
+  void set_homogeneous(int t, Corners corners) {
+    homogeneous.slot[t] = exact::homogeneous(plane(corner(corners, 0)), plane(corner(corners, 1)),
+                                             plane(corner(corners, 2)));
+  }
+
+  // classify for a bisector p by the exact sign of each vertex (no band).
+  bool classify_exactly(const Plane<T>& p, Mask& clipped, T& kept_radius2) const {
+    uint32_t any_clipped = 0u;
+    kept_radius2 = T(0);
+    for (int w = 0; w < kMaskWords; ++w) {
+      uint32_t bits = 0u;
+      const int end = min_of(num_triangles - 32 * w, 32);
+      for (int i = 0; i < end; ++i) {
+        const int t = 32 * w + i;
+        int side = exact::filtered_side(homogeneous.slot[t], p);
+        if (side == 2) {  // undecided: expand the vertex's planes exactly
+          const Corners corners = triangle.corners(t);
+          const Id a = corner(corners, 0), b = corner(corners, 1), c = corner(corners, 2);
+          const Plane<T> planes[3] = {plane(a), plane(b), plane(c)};
+          const Plane<T>* const rows[4] = {&planes[0], &planes[1], &planes[2], &p};
+          side = exact::exact_side(rows, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes, true});
+        }
+        const bool outside = side < 0;
+        bits |= uint32_t(outside) << i;
+        if (!outside) kept_radius2 = max_of(kept_radius2, squared_norm(triangle.position(t)));
+      }
+      clipped.word[w] = bits;
+      any_clipped |= bits;
+    }
+    return any_clipped != 0u;
+  }
+#endif
+
   // Fewer new triangles than removed ones: move kept triangles from the end
   // into the `count` holes left, lowest hole first, and shorten the list.
   TV_HD void fill_holes(typename Mask::Cursor& holes, int count, const Mask& clipped) {
@@ -792,6 +880,7 @@ struct ConvexCell {
         break;
       }
       triangle.copy(hole, last);
+      if constexpr (kExactPredicates) homogeneous.slot[hole] = homogeneous.slot[last];
       --last;
     }
     num_triangles = last + 1;

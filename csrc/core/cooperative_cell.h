@@ -67,7 +67,6 @@ struct CooperativeCell {
   int32_t num_triangles;
   T radius2;         // the largest |vertex|^2: the ball around the seed holding the cell
   T tolerance;       // relative tolerance of the clipping predicate
-  int max_band_widenings;
   int8_t status;
   uint32_t stamp;    // numbers the boundary searches (see CooperativeCellArrays::link)
 
@@ -78,7 +77,7 @@ struct CooperativeCell {
   TV_HD static uint32_t pack(uint32_t p, uint32_t q, uint32_t r) { return p | q << 8 | r << 16; }
   TV_HD static uint8_t corner(uint32_t triangle, int e) { return uint8_t(triangle >> (8 * e)); }
 
-  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance, int band_widenings) {
+  TV_HD void init_box(Vec3<T> lo, Vec3<T> hi, T relative_tolerance) {
     const int lane = lanes.index();
     for (int q = lane; q < kBoxPlanes; q += kLanes) a.plane[q] = box_plane(q, lo, hi);
     // Links of the previous cell in these arrays carry stamps this cell
@@ -94,7 +93,6 @@ struct CooperativeCell {
     num_planes = kBoxPlanes;
     num_triangles = 8;
     tolerance = relative_tolerance;
-    max_band_widenings = band_widenings;
     status = kSuccess;
     stamp = 0u;
     lanes.sync();
@@ -138,7 +136,7 @@ struct CooperativeCell {
     return count;
   }
 
-  // ConvexCell::clip_by_bisector, by the group: the same band widening, the
+  // ConvexCell::clip_by_bisector, by the group: the same predicate, the
   // same failures. New triangles go into the removed triangles' slots first
   // (lowest first) and after the last one beyond that; with fewer new than
   // removed triangles, kept triangles from the end fill the holes left.
@@ -149,14 +147,10 @@ struct CooperativeCell {
     T kept_radius2;  // this lane's largest |vertex|^2 among the vertices the plane keeps
     int removed = 0;
     int boundary = 0;
-    T band = tolerance;
-    for (int attempt = 0;; ++attempt, band = band * T(10)) {
-      if (attempt == max_band_widenings + 1) return fail(kBoundaryError);
-      if (!classify(p, -band * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
-      if (num_planes == MAX_PLANES) compact_planes();
-      if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
-      if (removed_boundary(clipped, removed, boundary)) break;
-    }
+    if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
+    if (num_planes == MAX_PLANES) compact_planes();
+    if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
+    if (!removed_boundary(clipped, removed, boundary)) return fail(kBoundaryError);
     const int new_count = num_triangles - removed + boundary;
     if (new_count > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int lane = lanes.index();

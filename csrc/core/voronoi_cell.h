@@ -78,7 +78,7 @@ struct NeighborReader {
 template <typename Cell, typename io_t, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed_index,
                                     const int32_t* neighbors, int64_t stride, int32_t k,
-                                    const io_t* box, T relative_tolerance, int band_widenings,
+                                    const io_t* box, T relative_tolerance,
                                     bool tetrahedron_start = true,
                                     const VertexBallGrid<io_t>* vertex_balls = nullptr) {
   const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]),
@@ -129,12 +129,12 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
         reader.read(choice.d, j, offset[3]);
         const StartTetrahedron<T> start = start_tetrahedron(offset, choice.positive, lo - seed, hi - seed);
         if (start.found) {
-          cell.init_tetrahedron(start, relative_tolerance, band_widenings);
+          cell.init_tetrahedron(start, relative_tolerance);
           used_by_start = choice.used();
         }
       }
     }
-    if (used_by_start == 0u) cell.init_box(lo - seed, hi - seed, relative_tolerance, band_widenings);
+    if (used_by_start == 0u) cell.init_box(lo - seed, hi - seed, relative_tolerance);
 
     out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
     out.neighbors = k;

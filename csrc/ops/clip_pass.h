@@ -72,7 +72,6 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   bool neighbors_column_major;
   int32_t chunk;               // cells in this chunk (the column stride)
   T tolerance;
-  int band_widenings;          // > 0 only in the last-resort pass
   bool tetrahedron_start;      // core::compute_cell: from a tetrahedron where one fits (false: the box)
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
@@ -108,11 +107,10 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
     const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
     if constexpr (kVertexBalls) {
       const core::VertexBallGrid<io_t> vertex_balls{this->grid, b};
-      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance,
-                                band_widenings, tetrahedron_start, &vertex_balls);
+      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance, tetrahedron_start,
+                                &vertex_balls);
     } else {
-      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance,
-                                band_widenings, tetrahedron_start);
+      return core::compute_cell(cell, points, cell_id, row, stride, k, box + 6 * b, tolerance, tetrahedron_start);
     }
   }
 
@@ -151,8 +149,7 @@ template <typename Exec, typename io_t, typename T, int MAX_PLANES, bool kVertex
           bool kUpToDeviceCount = false>
 void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const c10::optional<at::Tensor>& batch, const at::Tensor& cells,
-                const at::Tensor& neighbors, bool column_major, int band_widenings,
-                bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
+                const at::Tensor& neighbors, bool column_major, bool rows_by_step, const Grid* vertex_balls, c10::optional<double> neighbor_spread,
                 const Options& options, PositionOutputs& out, const core::DeviceCount& live = {}) {
   static_assert(!kVertexBalls || MAX_PLANES >= kVertexBallPlanes, "vertex-ball passes run at the largest tiers");
   constexpr bool kCompactPossible = std::is_same<T, float>::value && MAX_PLANES <= 32;
@@ -164,8 +161,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
         cells.data_ptr<int32_t>(),      neighbors.data_ptr<int32_t>(),
         static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
-        T(core::ClipTolerance<T>::value),
-        band_widenings,                 options.tetrahedron_start,
+        T(core::ClipTolerance<T>::value), options.tetrahedron_start,
         rows_by_step,                   out.data<io_t>(),
         out.status.data_ptr<int8_t>()};
     if constexpr (kVertexBalls) clip.grid = vertex_balls->view<io_t>();
@@ -218,7 +214,7 @@ void clip_chunk_tier(const at::Tensor& points, const at::Tensor& box,
   // The arguments that every tier's clip takes alike.
   const auto clip = [&](auto planes, auto finish_by_vertex_balls, const Grid* grid) {
     clip_chunk<Exec, io_t, T, decltype(planes)::value, decltype(finish_by_vertex_balls)::value>(
-        points, box, batch, cells, neighbors, column_major, /*band_widenings=*/0, /*rows_by_step=*/false, grid,
+        points, box, batch, cells, neighbors, column_major, /*rows_by_step=*/false, grid,
         neighbor_spread, options, out);
   };
   if (vertex_balls != nullptr) {
@@ -242,13 +238,13 @@ void clip_chunk_up_to_device_count(const at::Tensor& points, const at::Tensor& b
                                    const core::DeviceCount& live, const Options& options,
                                    PositionOutputs& out) {
   clip_chunk<Exec, io_t, io_t, 32, false, true>(points, box, batch, cells, neighbors, Exec::kColumnMajorNeighbors,
-                                                0, false, nullptr, neighbor_spread, options, out, live);
+                                                false, nullptr, neighbor_spread, options, out, live);
 }
 
 // The passes the device does not run, on the CPU whatever the device
 // (Exec::HostExec; the paper's fallback): the tiers beyond kLastDeviceTier,
-// and the last resort, double-double arithmetic, where an inconsistent clip
-// may widen its predicate band up to 6 times tenfold. Only a handful of cells
+// and the last resort, double-double arithmetic, whose clips decide by exact
+// predicates (core/exact_predicates.h). Only a handful of cells
 // ever get here. `pass` gives the tier, the precision and vertex balls.
 template <typename HostExec, typename io_t>
 void clip_chunk_on_host(const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
@@ -268,7 +264,7 @@ void clip_chunk_on_host(const at::Tensor& points, const at::Tensor& box, const c
     using T = typename decltype(scalar)::type;
     clip_chunk<HostExec, io_t, T, decltype(planes)::value, decltype(finish_by_vertex_balls)::value>(
         cpu(points), cpu(box), batch_cpu, cpu(cells), cpu(neighbors), column_major,
-        /*band_widenings=*/double_double ? 6 : 0, /*rows_by_step=*/true,
+        /*rows_by_step=*/true,
         vertex_balls != nullptr ? &vertex_balls_cpu : nullptr, /*neighbor_spread=*/c10::nullopt, options, part);
   };
   const auto at_tier = [&](auto scalar, auto finish_by_vertex_balls) {

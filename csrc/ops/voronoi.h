@@ -3,8 +3,8 @@
 // Cells are computed chunk by chunk (kNN into a bounded buffer, then clipping),
 // so no N x k neighbour array ever exists. Failed cells are retried with what
 // their status asks for: more neighbours, larger arrays, or more precision
-// (float64, then double-double on the CPU, where an inconsistent clip may also
-// widen its predicate band; ill-conditioned integrals ask for precision too).
+// (float64, then double-double on the CPU, whose clips decide by exact
+// predicates; ill-conditioned integrals ask for precision too).
 // A cell that fails every pass keeps its status and NaN outputs.
 #pragma once
 
