@@ -387,9 +387,15 @@ class Campaign:
         self.report.problems.append(p)
         self.log(f"  PROBLEM [{category}] {case.describe()}, cells={impl}: {message}\n    replay: {p.replay}")
 
-    def run(self, indices: Sequence[int]) -> Report:
+    def run(self, indices: Sequence[int], time_budget: float = 0.0) -> Report:
+        """Runs the cases `indices` in order; with `time_budget` > 0 (seconds),
+        starts no case once that much time has passed (the report's counts
+        say how many ran)."""
         start = time.perf_counter()
         for index in indices:
+            if time_budget > 0 and time.perf_counter() - start > time_budget:
+                self.log(f"time budget of {time_budget:g} s spent: stopped before case {int(index)}")
+                break
             self.current = (int(index), time.perf_counter())
             self.run_case(int(index))
             self.current = None
@@ -663,6 +669,8 @@ def main(argv=None) -> int:
                         help="on CUDA, compare with the CPU for cases of at most this many points")
     parser.add_argument("--json", help="write the counts and problems to this file")
     parser.add_argument("--quiet", action="store_true", help="no line per case")
+    parser.add_argument("--time-budget", type=float, default=0.0,
+                        help="start no case after this many seconds (0: no budget); the summary counts the cases run")
     parser.add_argument("--case-timeout", type=float, default=600.0,
                         help="stop the campaign, counting a timeout, when a case runs longer (seconds; 0: never)")
     args = parser.parse_args(argv)
@@ -685,7 +693,7 @@ def main(argv=None) -> int:
 
     if args.case_timeout > 0:
         campaign.watch(args.case_timeout, lambda: (finish(), os._exit(1)))
-    report = campaign.run(indices)
+    report = campaign.run(indices, time_budget=args.time_budget)
     finish()
     return 0 if report.ok() else 1
 
