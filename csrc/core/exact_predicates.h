@@ -17,8 +17,10 @@
 // a disc: the predicates cannot be inconsistent. A vertex exactly on the
 // plane is kept, as the rounded predicates keep it.
 //
-// Most signs are decided by a filter: the determinants in double with a
-// bound on their rounding error; only near-degenerate ones (cospherical
+// Most signs are decided by a filter: each vertex keeps its homogeneous
+// coordinates in double-double with bounds on their errors, and a sign is
+// a dot product with the plane's row, in double, then in double-double,
+// wherever the bound cannot flip it; only near-degenerate ones (cospherical
 // points, near-parallel planes) are expanded exactly.
 #pragma once
 
