@@ -46,7 +46,9 @@ within bounds are counted as skipped, with the reason.
 
 Exit status 1 if any cell failed, any cell was silently wrong (or a cloud's
 volumes did not sum to its box), an unexpected exception was raised, or a
-case ran past --case-timeout (the campaign stops there).
+case ran past --case-timeout (the campaign stops there). ``--time-budget S``
+starts no case after S seconds, so that a campaign fits a bounded call (the
+summary counts the cases that ran).
 """
 from __future__ import annotations
 

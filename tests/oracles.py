@@ -445,8 +445,10 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     joins the candidates until none is (then the cell is exact: the candidate
     cell contains the true one and lies inside every half-space). Integrals
     over the fans of the faces from the seed (as tetrahedron_integrals).
-    Slow (seconds a cell): for single cells of regression tests. Exact
-    duplicates are not handled here (use voronoi_cell_oracle).
+    Slow (seconds a cell): for single cells of regression tests. Exact copies
+    among the candidates give one plane, and copies of the seed none; a seed
+    with a lower-index copy (a DUPLICATE cell) is not handled here (use
+    voronoi_cell_oracle).
     """
     from fractions import Fraction
     from itertools import combinations
@@ -467,7 +469,12 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
         unit = tuple(Fraction(int(a == b)) for b in range(3))
         box_planes.append((unit, Fraction(float(hi[a])) - seed[a]))            # x_a <= hi_a
         box_planes.append((tuple(-u for u in unit), seed[a] - Fraction(float(lo[a]))))  # -x_a <= -lo_a
-    chosen = sorted(set(int(j) for j in candidates) - {i})
+    # One plane a distinct offset: a face counted once however many copies bound it.
+    chosen, offsets = [], set()
+    for j in sorted(set(int(j) for j in candidates) - {i}):
+        if rel[j] != (0, 0, 0) and rel[j] not in offsets:
+            offsets.add(rel[j])
+            chosen.append(j)
     while True:
         planes = box_planes + [bisector(j) for j in chosen]
         vertices = {}  # exact vertex -> indices of the planes through it

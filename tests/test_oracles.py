@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oracles import voronoi_cell_oracle
+from oracles import exact_cell_oracle, voronoi_cell_oracle
 
 
 def test_single_point_cell_is_the_box():
@@ -32,3 +32,13 @@ def test_two_points_split_the_box():
     np.testing.assert_allclose(left.centroid, [0.2, 0.5, 0.5], rtol=1e-14)
     np.testing.assert_allclose(right.centroid, [0.7, 0.5, 0.5], rtol=1e-14)
     assert list(left.facet_neighbors) == [1] and list(right.facet_neighbors) == [0]
+
+
+def test_exact_oracle_counts_copies_once():
+    """Copies among the candidates (of a neighbour, and of the seed at a
+    higher index) bound the cell as one point: the bisector x = 0.4 still
+    gives the left cell 0.4 of the unit cube, not a face counted twice."""
+    points = np.array([[0.2, 0.5, 0.5], [0.6, 0.5, 0.5], [0.6, 0.5, 0.5], [0.2, 0.5, 0.5]])
+    cell = exact_cell_oracle(points, 0, (np.zeros(3), np.ones(3)), candidates=[1, 2, 3])
+    assert cell.volume == pytest.approx(0.4, rel=1e-14, abs=0)
+    np.testing.assert_allclose(cell.centroid, [0.2, 0.5, 0.5], rtol=1e-14)
