@@ -185,6 +185,16 @@ def test_large_offset(device, dtype, gen, offset, knn_impl):
     knn_and_check(points, 10, queries)
 
 
+def test_far_from_zero_on_few_positions(device, gen, knn_impl):
+    """float32 points near 949 spread 5e-5, below the coordinates' spacing
+    (6e-5): they fall on a few positions, hundreds of copies each, in grid
+    cells smaller than that spacing. Bounds computed as origin + c * h
+    rounded to the spacing, and every query searched the whole grid."""
+    points = (949.0 + 5e-5 * torch.randn(3000, 3, generator=gen, dtype=torch.float64)).float().to(device)
+    assert len(torch.unique(points, dim=0)) < 200
+    knn_and_check(points, 16)
+
+
 def test_anisotropic_and_flat(device, dtype, gen, knn_impl):
     """Extents that differ by orders of magnitude; a plane; a line; one point."""
     points = rand(1500, gen, dtype, device) * torch.tensor([1.0, 1e-3, 10.0], dtype=dtype, device=device)

@@ -55,10 +55,13 @@ TV_HD int32_t grid_coordinate(T x, T origin, T cell_size, int32_t dim) {
 
 // Distance along one axis from x to the slab of grid cells [c, c + 1),
 // reduced by `margin` (points are assigned to cells by a rounded division).
+// The position is taken relative to the origin (u = x - origin, as
+// grid_coordinate divides it): far from zero, origin + c * cell_size would
+// round to the coordinates' spacing, which can exceed a cell.
 template <typename T>
-TV_HD T slab_gap(T x, T origin, T cell_size, int32_t c, T margin) {
-  const T low = origin + T(c) * cell_size;
-  const T gap = max_of(low - x, x - (low + cell_size));
+TV_HD T slab_gap(T u, T cell_size, int32_t c, T margin) {
+  const T low = T(c) * cell_size;
+  const T gap = max_of(low - u, u - (low + cell_size));
   return max_of(gap - margin, T(0));
 }
 
@@ -267,27 +270,28 @@ struct RowRanges {
 // offer, and when to stop. The thread and the cooperative searches share it.
 template <typename T>
 struct Rings {
-  Vec3<T> query, origin;
+  Vec3<T> local;  // the query relative to the grid's origin
   T h;       // cell edge
   T margin;  // cell_margin(h)
   T inverse_h;  // 1 / h (row_cell)
   int32_t dim[3], cell[3], offset;
 
   TV_HD Rings(const GridView<T>& grid, int64_t batch, Vec3<T> q)
-      : query(q), origin(load_vec3(grid.origin + 3 * batch)), h(grid.cell_size[batch]),
+      : local(q - load_vec3(grid.origin + 3 * batch)), h(grid.cell_size[batch]),
         margin(cell_margin(h)), inverse_h(T(1) / h), offset(grid.cell_offset[batch]) {
     TV_UNROLL
     for (int a = 0; a < 3; ++a) dim[a] = grid.dims[3 * batch + a];
-    cell[0] = grid_coordinate(query.x, origin.x, h, dim[0]);
-    cell[1] = grid_coordinate(query.y, origin.y, h, dim[1]);
-    cell[2] = grid_coordinate(query.z, origin.z, h, dim[2]);
+    // grid_coordinate's cells
+    cell[0] = cell_of_position(local.x / h, dim[0]);
+    cell[1] = cell_of_position(local.y / h, dim[1]);
+    cell[2] = cell_of_position(local.z / h, dim[2]);
   }
 
   // Shell r's cells along axis a, clamped to the grid: [low(a, r), high(a, r)].
   TV_HD int32_t low(int a, int32_t r) const { return max_of(cell[a] - r, 0); }
   TV_HD int32_t high(int a, int32_t r) const { return min_of(cell[a] + r, dim[a] - 1); }
 
-  TV_HD T gap_z(int32_t z) const { return slab_gap(query.z, origin.z, h, z, margin); }
+  TV_HD T gap_z(int32_t z) const { return slab_gap(local.z, h, z, margin); }
 
   // The points of row (z, y) of shell r that may beat the heap's worst
   // candidate (strictly: an equally far point with a lower index would still
@@ -296,7 +300,7 @@ struct Rings {
   TV_HD RowRanges row(int32_t r, int32_t z, int32_t y, T gap_z, const int32_t* cell_start,
                       const NeighborHeap<T>& heap) const {
     RowRanges out = {{0, 0}, {0, 0}};
-    const T gap_y = slab_gap(query.y, origin.y, h, y, margin);
+    const T gap_y = slab_gap(local.y, h, y, margin);
     const T gap_yz2 = gap_z * gap_z + gap_y * gap_y;
     if (heap.full() && gap_yz2 > heap.worst()) return out;
     const int32_t row_start = offset + (z * dim[1] + y) * dim[0];
@@ -305,8 +309,8 @@ struct Rings {
       int32_t xa = low(0, r), xb = high(0, r);
       if (heap.full()) {
         const T reach = sqrt_of(heap.worst() - gap_yz2) + margin;
-        xa = max_of(xa, row_cell(query.x - reach, -1));
-        xb = min_of(xb, row_cell(query.x + reach, 1));
+        xa = max_of(xa, row_cell(local.x - reach, -1));
+        xb = min_of(xb, row_cell(local.x + reach, 1));
       }
       if (xa <= xb) {
         out.begin[0] = cell_start[row_start + xa];
@@ -317,7 +321,7 @@ struct Rings {
       for (int side = 0; side < 2; ++side) {
         const int32_t x = side == 0 ? cx - r : cx + r;
         if (x < 0 || x >= dim[0]) continue;
-        const T gap_x = slab_gap(query.x, origin.x, h, x, margin);
+        const T gap_x = slab_gap(local.x, h, x, margin);
         if (heap.full() && gap_x * gap_x + gap_yz2 > heap.worst()) continue;
         out.begin[side] = cell_start[row_start + x];
         out.end[side] = cell_start[row_start + x + 1];
@@ -326,8 +330,9 @@ struct Rings {
     return out;
   }
 
-  // A bound on grid_coordinate(x, ...) along x on the side `side` (-1: at
-  // most, 1: at least), for the row's cells within reach. A product by 1 / h
+  // A bound on the cell of position x (relative to the origin, as `local`)
+  // along x on the side `side` (-1: at most, 1: at least), for the row's
+  // cells within reach. A product by 1 / h
   // instead of the division by h: the division is ~8 instructions on the
   // GPU, twice a row of the search, and the kNN kernel is bound by the
   // instructions it issues. The two differ by at most ~3 units in the
@@ -335,7 +340,7 @@ struct Rings {
   // itself bounds the quotient's cell. The search's result is unchanged: the
   // bound only prunes, and errs on the safe side.
   TV_HD int32_t row_cell(T x, int side) const {
-    const T u = (x - origin.x) * inverse_h;
+    const T u = x * inverse_h;
     const T widened = u + T(side) * (u < T(0) ? -u : u) * (T(1) / T(1 << 20));
     return cell_of_position(widened, dim[0]);
   }
@@ -343,19 +348,18 @@ struct Rings {
   // Whether shell r was the last one: no point outside its cube can enter
   // the heap (or the cube covers the whole grid).
   TV_HD bool exhausted(int32_t r, const NeighborHeap<T>& heap, T infinity) const {
-    const T q[3] = {query.x, query.y, query.z};
-    const T o[3] = {origin.x, origin.y, origin.z};
+    const T u[3] = {local.x, local.y, local.z};
     T bound = infinity;  // distance to the nearest cell outside the cube
     bool covers_grid = true;
     TV_UNROLL
     for (int a = 0; a < 3; ++a) {
       if (cell[a] - r > 0) {
         covers_grid = false;
-        bound = min_of(bound, q[a] - (o[a] + T(cell[a] - r) * h));
+        bound = min_of(bound, u[a] - T(cell[a] - r) * h);
       }
       if (cell[a] + r < dim[a] - 1) {
         covers_grid = false;
-        bound = min_of(bound, (o[a] + T(cell[a] + r + 1) * h) - q[a]);
+        bound = min_of(bound, T(cell[a] + r + 1) * h - u[a]);
       }
     }
     if (covers_grid) return true;

@@ -175,8 +175,8 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
       bool meets = false;
       for (int t = lane; t < cell.vertex_count(); t += kLanes) {
         const Vec3<S> v = to_s(cell.vertex(t));
-        const S gap_slab = slab_gap(along(v, outer), slab.origin, h, c_slab, margin);
-        const S gap_across = slab_gap(along(v, inner), across.origin, h, c_across, margin);
+        const S gap_slab = slab_gap(along(v, outer) - slab.origin, h, c_slab, margin);
+        const S gap_across = slab_gap(along(v, inner) - across.origin, h, c_across, margin);
         const S reach2 = squared_norm(v) - gap_slab * gap_slab - gap_across * gap_across;
         if (!(reach2 > S(0))) continue;
         const S reach = sqrt_of(reach2) + margin;
