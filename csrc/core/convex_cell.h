@@ -174,6 +174,25 @@ TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance)
   return neighbor_dist2 > T(4) * slack * cell_radius2;
 }
 
+// A float cell's vertices are rounded to about eps times their distance from
+// the seed. While they lie more than 4096 times farther than a bisector
+// (a box start, or a long wedge, cut by neighbours a few ulps away), that
+// rounding is not small beside the bisector's distance: a vertex within 8
+// roundings of it (rounding_could_cut) may fall on either side, and a wrong
+// side is a wrong cell. The cell is then recomputed in double
+// (kIllConditioned). Never in double: its rounding is 2^29 times finer.
+// (64 roundings flagged a third of the cells of anisotropic lattices, whose
+// axis-aligned planes round far less.)
+template <typename T>
+TV_HD bool far_beside_bisector(T r2, T radius2) {
+  return std::is_same<T, float>::value && r2 * T(16777216) < radius2;  // |r| < 2^-12 sqrt(radius2)
+}
+template <typename T>
+TV_HD bool rounding_could_cut(const Plane<T>& p, Vec3<T> v, T r2, T radius2) {
+  const T scaled = (dot(p.normal, v) + p.offset) * T(2097152);  // over 2^-21 |r| sqrt(radius2)
+  return scaled * scaled < r2 * radius2;
+}
+
 // ---- The first cell: a tetrahedron of four bisectors, or the box ----------
 //
 // Starting from the box, the first neighbours carve away its 8 corners and
@@ -341,6 +360,13 @@ TV_HD bool has_edge(uint64_t corners, uint64_t code) {
 // visible share of the warp cell's stalls).
 TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
 
+// What bounds the rounding error of a cell's integrals (CellMoments).
+template <typename T>
+struct CellRounding {
+  T unsigned_volume;     // the tetrahedra's absolute volumes: the cancellation
+  T conditioned_volume;  // float: the same weighted by each vertex's condition
+};
+
 // Volume, first moment and second moment (integral of |x|^2) of a cell,
 // relative to the seed, summed over six signed tetrahedra per vertex (§3.5):
 // seed, foot of the seed on a plane, foot on an edge line, the vertex.
@@ -351,19 +377,24 @@ TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
 // against at most ~7 on white noise).
 template <typename T>
 struct CellMoments {
-  T six_volume;           // 6 * volume
-  T unsigned_six_volume;  // 6 * sum of |tetrahedron volume|
-  Vec3<T> m1;             // 24 * first moment
-  T m2;                   // 120 * second moment
+  T six_volume;              // 6 * volume
+  T unsigned_six_volume;     // 6 * sum of |tetrahedron volume|
+  T conditioned_six_volume;  // float: the same, each vertex's weighted by its condition (add_vertex)
+  Vec3<T> m1;                // 24 * first moment
+  T m2;                      // 120 * second moment
 
-  TV_HD static CellMoments zero() { return {T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
+  TV_HD static CellMoments zero() { return {T(0), T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
 
   // The six tetrahedra of vertex v, where planes a, b, c (in the triangle's
   // orientation) meet. Each foot is used by two tetrahedra: its |x|^2, and
   // the edge foot's cross product with v (the determinant of f, e, v is
   // f . (e x v)), are computed once for both.
+  // In float, each vertex's tetrahedra also count into
+  // conditioned_six_volume divided by the sine of its planes (|det| of their
+  // unit normals): the vertex's rounding error grows as 1 / sine.
   TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex) {
     const Vec3<T> v = vertex.position;
+    const T unsigned_before = unsigned_six_volume;
     Vec3<T> feet[3];
     T feet2[3];
     TV_UNROLL
@@ -381,11 +412,19 @@ struct CellMoments {
       add_tetrahedron(feet[e], feet2[e], edge_cross_v, edge_plus_v, edge_v2, T(1));
       add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
     }
+    if constexpr (std::is_same<T, float>::value) {
+      const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
+      const T sine = fabsf(det) * rsqrt_of(dot(planes[0].normal, planes[0].normal)) *
+                     rsqrt_of(dot(planes[1].normal, planes[1].normal)) *
+                     rsqrt_of(dot(planes[2].normal, planes[2].normal));
+      conditioned_six_volume += (unsigned_six_volume - unsigned_before) / sine;  // Inf if degenerate
+    }
   }
 
-  TV_HD void finish(T& volume, Vec3<T>& first_moment, T& second_moment, T& unsigned_volume) const {
+  TV_HD void finish(T& volume, Vec3<T>& first_moment, T& second_moment, CellRounding<T>& rounding) const {
     volume = six_volume / T(6);
-    unsigned_volume = unsigned_six_volume / T(6);
+    rounding.unsigned_volume = unsigned_six_volume / T(6);
+    rounding.conditioned_volume = conditioned_six_volume / T(6);
     first_moment = (T(1) / T(24)) * m1;
     second_moment = m2 / T(120);
   }
@@ -736,6 +775,11 @@ struct ConvexCell {
     PlaneSet on_boundary;
     int boundary_length = 0;
     Id start = kNone;
+    if (far_beside_bisector(r2, radius2)) {
+      for (int t = 0; t < num_triangles; ++t) {
+        if (rounding_could_cut(p, triangle.position(t), r2, radius2)) return fail(kIllConditioned);
+      }
+    }
     if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
     if (num_planes == MAX_PLANES) compact_planes();
     if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
@@ -776,7 +820,7 @@ struct ConvexCell {
   // Volume, first moment and second moment (integral of |x|^2) of the cell,
   // all relative to the seed, and the cancellation measure (CellMoments).
   TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
-                       T& unsigned_volume) const {
+                       CellRounding<T>& rounding) const {
     CellMoments<T> moments = CellMoments<T>::zero();
     for (int t = 0; t < num_triangles; ++t) {
       const Corners corners = triangle.corners(t);
@@ -784,7 +828,7 @@ struct ConvexCell {
       const Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
       moments.add_vertex(planes, {position, squared_norm(position)});
     }
-    moments.finish(volume, first_moment, second_moment, unsigned_volume);
+    moments.finish(volume, first_moment, second_moment, rounding);
   }
 
  private:

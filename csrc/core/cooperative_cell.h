@@ -147,6 +147,11 @@ struct CooperativeCell {
     T kept_radius2;  // this lane's largest |vertex|^2 among the vertices the plane keeps
     int removed = 0;
     int boundary = 0;
+    if (far_beside_bisector(r2, radius2)) {  // as the thread cell
+      bool could_cut = false;
+      for_own_slots([&](int t) { could_cut = could_cut || rounding_could_cut(p, a.vertex[t].position, r2, radius2); });
+      if (lanes.any(could_cut)) return fail(kIllConditioned);
+    }
     if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
     if (num_planes == MAX_PLANES) compact_planes();
     if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
@@ -180,7 +185,7 @@ struct CooperativeCell {
   // ConvexCell::integrate, each lane over its slots, then summed over the
   // lanes (in another order than one thread would: equal up to rounding).
   TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
-                       T& unsigned_volume) const {
+                       CellRounding<T>& rounding) const {
     CellMoments<T> moments = CellMoments<T>::zero();
     for_own_slots([&](int t) {
       const uint32_t corners = a.triangle[t];
@@ -190,9 +195,12 @@ struct CooperativeCell {
     });
     moments.six_volume = lanes.sum(moments.six_volume);
     moments.unsigned_six_volume = lanes.sum(moments.unsigned_six_volume);
+    if constexpr (std::is_same<T, float>::value) {
+      moments.conditioned_six_volume = lanes.sum(moments.conditioned_six_volume);
+    }
     moments.m1 = {lanes.sum(moments.m1.x), lanes.sum(moments.m1.y), lanes.sum(moments.m1.z)};
     moments.m2 = lanes.sum(moments.m2);
-    moments.finish(volume, first_moment, second_moment, unsigned_volume);
+    moments.finish(volume, first_moment, second_moment, rounding);
   }
 
  private:
