@@ -121,7 +121,12 @@ def compare(a_path: str, b_path: str) -> int:
             elif x.is_floating_point():
                 bits = {4: torch.int32, 8: torch.int64}[x.element_size()]
                 if not torch.equal(x.view(bits), y.view(bits)):
-                    print(f"{key}[{i}]: floating bits differ")
+                    differ = x.view(bits) != y.view(bits)
+                    xs, ys = x[differ].double(), y[differ].double()
+                    both = torch.isfinite(xs) & torch.isfinite(ys)
+                    relative = ((xs - ys).abs() / ys.abs().clamp_min(1e-300))[both]
+                    worst = f", largest relative difference {relative.max().item():.2e}" if relative.numel() else ""
+                    print(f"{key}[{i}]: floating bits differ in {int(differ.sum())} of {x.numel()}{worst}")
                     bad += 1
             elif not torch.equal(x, y):
                 print(f"{key}[{i}]: values differ")

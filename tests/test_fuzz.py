@@ -50,6 +50,7 @@ REGRESSIONS = [
     (2, 210, 5000, "float32", "11 clusters of spread 1.4e-4: a cell 4.4e-4 off (ill-conditioned vertices)"),
     (3, 255, 20000, "float32", "4 clusters of spread 2.5e-4: a cell 5.4e-3 off (ill-conditioned vertices)"),
     (3, 358, 20000, "float32", "a cell a few ulps wide beside a box start: 4.9e-2 off (vertices' rounding decided cuts)"),
+    (1, 228, 20000, "both", "5 points above a wall layer: TOO_MANY_PLANES at the largest tier"),
 ]
 
 

@@ -242,3 +242,21 @@ def test_pilot_quantile_changes_no_result(monkeypatch, device, dtype, gen, quant
     cells = torchvor.voronoi(points, UNIT)
     check_global(cells, points, [box_of(points, UNIT)], dtype)
     assert_cells_unchanged(cells, default_cells, dtype, same_passes=False)
+
+
+def test_a_cell_with_thousands_of_faces(monkeypatch, device, dtype, gen):
+    """A point above a dense layer of points on a wall faces every point of
+    the layer, more faces than any fixed tier holds: its cell is finished on the
+    host without bounds (core::UnboundedCell), exact, as are the layer's."""
+    on_wall = 20000
+    points = torch.rand(on_wall + 1, 3, generator=gen, dtype=torch.float64)
+    points[:on_wall, 2] *= 1e-3
+    points[on_wall] = torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64)
+    points = points.to(dtype).to(device)
+    cells = run(points, UNIT)
+    lohi = box_of(points, UNIT)
+    check_global(cells, points, [lohi], dtype)
+    check_against_oracle(cells, points, lohi, [on_wall, 0, 1, on_wall - 1], RTOL[dtype])
+    monkeypatch.setenv("TORCHVOR_TEST_BOUNDED_CELLS", "1")  # the largest fixed tier overflows
+    bounded = torchvor.voronoi(points, UNIT, on_failure="flag").status.cpu()
+    assert bounded[on_wall] in (torchvor.CellStatus.TOO_MANY_PLANES, torchvor.CellStatus.TOO_MANY_VERTICES)

@@ -1,6 +1,8 @@
 // One Voronoi cell from its sorted neighbour list (paper §3, Alg. 2).
 #pragma once
 
+#include <type_traits>
+
 #include "convex_cell.h"
 #include "cooperative_cell.h"
 #include "vertex_balls.h"
@@ -29,6 +31,13 @@ template <> struct CancellationLimit<double, double> { static constexpr double v
 // grids stay below ~30.
 template <typename io_t, typename T> struct ConditionLimit { static constexpr double value = 0.0; };
 template <> struct ConditionLimit<float, float> { static constexpr double value = 1e4; };
+
+// Whether a cell type is clipped by its list alone, never finished on the
+// grid (Cell::kListOnly; UnboundedCell, whose list is its whole cloud).
+template <typename Cell, typename = void>
+struct ListOnly : std::false_type {};
+template <typename Cell>
+struct ListOnly<Cell, std::void_t<decltype(Cell::kListOnly)>> : std::integral_constant<bool, Cell::kListOnly> {};
 
 template <typename T>
 struct CellIntegrals {
@@ -189,11 +198,13 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
   };
   start_and_clip_list();
 
-  if (vertex_balls != nullptr && out.status == kSecurityRadiusNotReached) {
-    int32_t further = 0;
-    out.status = finish_by_vertex_balls(cell, *vertex_balls, seed_index, seed, listed_dist2,
-                                        start_and_clip_list, further);
-    out.neighbors = k + further;
+  if constexpr (!ListOnly<Cell>::value) {
+    if (vertex_balls != nullptr && out.status == kSecurityRadiusNotReached) {
+      int32_t further = 0;
+      out.status = finish_by_vertex_balls(cell, *vertex_balls, seed_index, seed, listed_dist2,
+                                          start_and_clip_list, further);
+      out.neighbors = k + further;
+    }
   }
   // One exit from the loop above (no early return inside it): on the GPU the
   // lanes of a warp meet again here and integrate together, instead of each

@@ -49,6 +49,7 @@ Options Options::from_environment() {
   if (equals(variable("TORCHVOR_CELL_START"), "box")) options.tetrahedron_start = false;
   if (equals(variable("TORCHVOR_THREAD_TRIANGLES"), "full")) options.compact_triangles = false;
   if (equals(variable("TORCHVOR_CPU_ISA"), "baseline")) options.cpu_baseline_isa = true;
+  if (equals(variable("TORCHVOR_TEST_BOUNDED_CELLS"), "1")) options.testing.bounded_cells = true;
   double real = 0.0;
   if (read_real("TORCHVOR_PILOT_QUANTILE", real) && real > 0.0 && real <= 1.0) options.pilot_quantile = real;
   if (read_real("TORCHVOR_POINTS_PER_CELL_SCALE", real) && real > 0.0) options.points_per_cell_scale = real;

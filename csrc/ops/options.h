@@ -35,6 +35,7 @@ struct Options {
   struct Testing {
     int64_t scatter_bytes = 0;     // TORCHVOR_TEST_SCATTER_BYTES > 0: the inverse order's range size
     int64_t forget_position = -1;  // TORCHVOR_TEST_UNWRITTEN_CELL: drop this grid position's first result
+    bool bounded_cells = false;    // TORCHVOR_TEST_BOUNDED_CELLS=1: no unbounded cells (a cell can overflow)
   } testing;
 
   // The options of a call: the defaults, overridden by the variables that are

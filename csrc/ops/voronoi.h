@@ -18,6 +18,7 @@
 #include "cell_records.h"
 #include "checks.h"
 #include "clip_pass.h"
+#include "giant_cells.h"
 #include "grid.h"
 #include "options.h"
 #include "pilot.h"
@@ -185,6 +186,11 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     const PassSettings next = escalated(pass, ask, largest_cloud, is_double, options.vertex_balls_k);
     if (next == pass) break;  // nothing left to raise
     pass = next;
+  }
+  // Cells that overflow even the largest tier: on the host, without bounds.
+  if (pass.tier == kLastTier && last_failed.size(0) > 0 && !options.testing.bounded_cells &&
+      finish_giant_cells(work_points, box, work_batch, last_failed, out) > 0) {
+    finished_early.reset();
   }
   if (unwritten) {
     Exec::for_each(last_failed.size(0), PoisonUnwrittenFunctor<io_t>{last_failed.data_ptr<int32_t>(),
