@@ -199,6 +199,14 @@ TV_HD int bit_count(uint32_t bits) {
 // Square root (correctly rounded on both backends), 0 for x <= 0.
 TV_HD float sqrt_of(float x) { return x > 0.0f ? sqrtf(x) : 0.0f; }
 TV_HD double sqrt_of(double x) { return x > 0.0 ? sqrt(x) : 0.0; }
+// x / y, approximate on the GPU (for estimates, not results).
+TV_HD float estimate_divide(float x, float y) {
+#if defined(__CUDA_ARCH__)
+  return __fdividef(x, y);
+#else
+  return x / y;
+#endif
+}
 // 1 / sqrt(x), approximate on the GPU (for estimates, not results).
 TV_HD float rsqrt_of(float x) {
 #if defined(__CUDA_ARCH__)

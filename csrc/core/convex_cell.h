@@ -187,10 +187,11 @@ template <typename T>
 TV_HD bool far_beside_bisector(T r2, T radius2) {
   return std::is_same<T, float>::value && r2 * T(16777216) < radius2;  // |r| < 2^-12 sqrt(radius2)
 }
+// `value`: the plane's at a vertex (n . v + o, |n| = |r|); band2: r2 * radius2.
 template <typename T>
-TV_HD bool rounding_could_cut(const Plane<T>& p, Vec3<T> v, T r2, T radius2) {
-  const T scaled = (dot(p.normal, v) + p.offset) * T(2097152);  // over 2^-21 |r| sqrt(radius2)
-  return scaled * scaled < r2 * radius2;
+TV_HD bool rounding_could_cut(T value, T band2) {
+  const T scaled = value * T(2097152);  // |value| < 2^-21 |r| sqrt(radius2)
+  return scaled * scaled < band2;
 }
 
 // ---- The first cell: a tetrahedron of four bisectors, or the box ----------
@@ -394,7 +395,6 @@ struct CellMoments {
   // unit normals): the vertex's rounding error grows as 1 / sine.
   TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex) {
     const Vec3<T> v = vertex.position;
-    const T unsigned_before = unsigned_six_volume;
     Vec3<T> feet[3];
     T feet2[3];
     TV_UNROLL
@@ -402,6 +402,17 @@ struct CellMoments {
       feet[e] = plane_foot(planes[e]);
       feet2[e] = dot(feet[e], feet[e]);
     }
+    // 1 / sine before the tetrahedra (one value to keep across them, not the
+    // normals' lengths); two factors under the roots, so tiny cells do not underflow.
+    T inverse_sine = T(0);
+    if constexpr (std::is_same<T, float>::value) {
+      const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
+      const T sine = fabsf(det) *
+                     rsqrt_of(dot(planes[0].normal, planes[0].normal) * dot(planes[1].normal, planes[1].normal)) *
+                     rsqrt_of(dot(planes[2].normal, planes[2].normal));
+      inverse_sine = estimate_divide(T(1), sine);  // Inf or NaN if degenerate
+    }
+    const T unsigned_before = unsigned_six_volume;
     TV_UNROLL
     for (int e = 0; e < 3; ++e) {
       const int f = (e + 1) % 3;
@@ -413,11 +424,7 @@ struct CellMoments {
       add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
     }
     if constexpr (std::is_same<T, float>::value) {
-      const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
-      const T sine = fabsf(det) * rsqrt_of(dot(planes[0].normal, planes[0].normal)) *
-                     rsqrt_of(dot(planes[1].normal, planes[1].normal)) *
-                     rsqrt_of(dot(planes[2].normal, planes[2].normal));
-      conditioned_six_volume += (unsigned_six_volume - unsigned_before) / sine;  // Inf if degenerate
+      conditioned_six_volume += (unsigned_six_volume - unsigned_before) * inverse_sine;
     }
   }
 
@@ -777,7 +784,9 @@ struct ConvexCell {
     Id start = kNone;
     if (far_beside_bisector(r2, radius2)) {
       for (int t = 0; t < num_triangles; ++t) {
-        if (rounding_could_cut(p, triangle.position(t), r2, radius2)) return fail(kIllConditioned);
+        if (rounding_could_cut(dot(p.normal, triangle.position(t)) + p.offset, r2 * radius2)) {
+          return fail(kIllConditioned);
+        }
       }
     }
     if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell

@@ -147,12 +147,12 @@ struct CooperativeCell {
     T kept_radius2;  // this lane's largest |vertex|^2 among the vertices the plane keeps
     int removed = 0;
     int boundary = 0;
-    if (far_beside_bisector(r2, radius2)) {  // as the thread cell
-      bool could_cut = false;
-      for_own_slots([&](int t) { could_cut = could_cut || rounding_could_cut(p, a.vertex[t].position, r2, radius2); });
-      if (lanes.any(could_cut)) return fail(kIllConditioned);
-    }
-    if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
+    // As the thread cell's far_beside_bisector, within classify's pass.
+    const bool far = far_beside_bisector(r2, radius2);
+    bool could_cut = false;
+    const bool cuts = classify(p, -tolerance * r2, far ? r2 * radius2 : T(0), clipped, kept_radius2, could_cut);
+    if (far && lanes.any(could_cut)) return fail(kIllConditioned);
+    if (!cuts) return true;  // the plane misses the cell
     if (num_planes == MAX_PLANES) compact_planes();
     if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
     if (!removed_boundary(clipped, removed, boundary)) return fail(kBoundaryError);
@@ -235,7 +235,10 @@ struct CooperativeCell {
   // The ballot words of the vertices more than `threshold` (< 0) outside
   // plane p; whether any is; and the largest |vertex|^2 of this lane's
   // vertices that the plane keeps.
-  TV_HD bool classify(const Plane<T>& p, T threshold, uint32_t (&clipped)[kRounds], T& kept_radius2) const {
+  // could_cut: whether rounding could put a vertex on the other side
+  // (rounding_could_cut; band2 0: never).
+  TV_HD bool classify(const Plane<T>& p, T threshold, T band2, uint32_t (&clipped)[kRounds], T& kept_radius2,
+                      bool& could_cut) const {
     uint32_t any_clipped = 0u;
     kept_radius2 = T(0);
     TV_UNROLL
@@ -244,7 +247,9 @@ struct CooperativeCell {
       bool outside = false;
       if (t < num_triangles) {
         const CachedVertex<T> v = a.vertex[t];
-        outside = dot(p.normal, v.position) + p.offset < threshold;
+        const T value = dot(p.normal, v.position) + p.offset;
+        outside = value < threshold;
+        could_cut = could_cut || rounding_could_cut(value, band2);
         kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
       }
       clipped[j] = lanes.ballot(outside);
