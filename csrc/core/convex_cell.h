@@ -181,8 +181,8 @@ TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance)
 // roundings of it (rounding_could_cut) may fall on either side, and a wrong
 // side is a wrong cell. The cell is then recomputed in double
 // (kIllConditioned). Never in double: its rounding is 2^29 times finer.
-// (64 roundings flagged a third of the cells of anisotropic lattices, whose
-// axis-aligned planes round far less.)
+// Eight roundings, not more: axis-aligned planes (anisotropic lattices)
+// round far less than this bound on the Euclidean radius assumes.
 template <typename T>
 TV_HD bool far_beside_bisector(T r2, T radius2) {
   return std::is_same<T, float>::value && r2 * T(16777216) < radius2;  // |r| < 2^-12 sqrt(radius2)
