@@ -65,7 +65,6 @@ class UnboundedCell {
       }
     }
     hint_ = 0;
-    alive_ = 8;
     stamp_.assign(triangles_.size(), 0u);
     generation_ = 0u;
   }
@@ -142,7 +141,6 @@ class UnboundedCell {
       triangles_[region_[n]].alive = false;
       free_.push_back(region_[n]);
     }
-    alive_ += length - int64_t(region_.size());
     for (const BoundaryEdge& edge : boundary_) edge_from_[edge.from] = -1;
     hint_ = fan_[0];
     return true;
@@ -159,9 +157,6 @@ class UnboundedCell {
     }
     moments.finish(volume, first_moment, second_moment, rounding);
   }
-
-  int64_t vertex_count() const { return alive_; }
-  int64_t plane_count() const { return int64_t(planes_.size()); }
 
  private:
   static constexpr uint32_t kRemoved = 0x80000000u;  // a stamp's flag: outside the plane
@@ -354,7 +349,6 @@ class UnboundedCell {
   std::priority_queue<RadiusEntry> by_radius_;  // the vertices' |v|^2, largest first
   DoubleDouble tolerance_ = DoubleDouble(0.0);
   int32_t hint_ = 0;  // a triangle of the last fan: the next walk starts there
-  int64_t alive_ = 0;
 };
 
 }  // namespace core
