@@ -212,6 +212,18 @@ def test_anisotropic_and_flat(device, dtype, gen, knn_impl):
     assert result.idx.cpu().tolist() == expected
 
 
+def test_line_with_clusters_far_apart(device, dtype, gen, knn_impl):
+    """Two clusters of 1000 points at the ends of a line 10^4 cluster widths
+    long: the grid has thousands of empty cells along the line and one along
+    the other axes, and a k larger than a cluster sends every search across
+    the gap (shells as wide as the grid, Rings::last_step)."""
+    line = torch.zeros(2000, 3, dtype=torch.float64)
+    line[:, 0] = torch.rand(2000, generator=gen, dtype=torch.float64)
+    line[1000:, 0] += 1e4
+    points = line.to(dtype).to(device)
+    knn_and_check(points, 1200)
+
+
 def test_long_strip_of_cells(device, dtype, gen, knn_impl):
     """100000 integer points on a strip five points wide: ~22000 x 4 grid
     cells, where a float32 cell position along x (up to 2.2e4) is rounded to

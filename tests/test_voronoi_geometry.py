@@ -228,6 +228,39 @@ def test_duplicates(device, dtype, gen, cells_impl, vertex_balls):
     check_against_oracle(cells, points, lohi, subset, RTOL[dtype])
 
 
+def test_points_copied_thousands_of_times(device, dtype, gen, cells_impl):
+    """30 points, each copied up to ~1000 times in random order, in two
+    clouds of a batch that share them (copies across clouds are not
+    duplicates): in each cloud the lowest index of each point keeps its cell,
+    which is right; the others are DUPLICATE. Without setting the copies
+    aside, each kept cell's neighbour lists fill with copies of one point."""
+    base = rand(30, gen, dtype, "cpu")
+    pick = torch.randint(0, 30, (6000,), generator=gen)
+    pick[:30] = torch.arange(30)
+    cloud = base[pick[torch.randperm(6000, generator=gen)]]
+    points = torch.cat([cloud, cloud[torch.randperm(6000, generator=gen)]]).to(device)
+    batch = torch.arange(2).repeat_interleave(6000).to(device)
+    cells = run(points, UNIT, batch=batch)
+    p = points.cpu()
+    for b in range(2):
+        rows = range(6000 * b, 6000 * (b + 1))
+        first = {}
+        for i in rows:
+            first.setdefault(tuple(p[i].tolist()), i)
+        owners = torch.tensor(sorted(first.values()))
+        status = cells.status.cpu()[6000 * b: 6000 * (b + 1)]
+        expected = torch.full((6000,), int(CellStatus.DUPLICATE), dtype=torch.int8)
+        expected[owners - 6000 * b] = int(CellStatus.SUCCESS)
+        assert torch.equal(status, expected)
+        assert cells.volume[owners].sum().item() == pytest.approx(1.0, rel=RTOL[dtype])
+        sub = p[owners].to(device)
+        check_against_oracle(run(sub, UNIT), sub, box_of(sub, UNIT), range(len(owners)), RTOL[dtype])
+        np.testing.assert_array_equal(cells.volume[owners].cpu().numpy(), run(sub, UNIT).volume.cpu().numpy())
+    copies = cells.status == CellStatus.DUPLICATE
+    assert (cells.volume[copies] == 0).all() and torch.equal(cells.centroid[copies], points[copies])
+    assert (cells.neighbors_needed[copies] == 1).all()
+
+
 def test_duplicates_many(device, dtype, gen):
     """Many exact copies (each cloud: 300 points, half of them copied once, a
     sixth twice): global identities and no NaN in SUCCESS cells. A cell whose

@@ -290,6 +290,11 @@ struct Rings {
   // Shell r's cells along axis a, clamped to the grid: [low(a, r), high(a, r)].
   TV_HD int32_t low(int a, int32_t r) const { return max_of(cell[a] - r, 0); }
   TV_HD int32_t high(int a, int32_t r) const { return min_of(cell[a] + r, dim[a] - 1); }
+  // The last center_out step that reaches [low(a, r), high(a, r)]: shells far
+  // wider than a thin grid cost their cells, not their width squared.
+  TV_HD int32_t last_step(int a, int32_t r) const {
+    return 2 * max_of(cell[a] - low(a, r), high(a, r) - cell[a]);
+  }
 
   TV_HD T gap_z(int32_t z) const { return slab_gap(local.z, h, z, margin); }
 
@@ -379,13 +384,13 @@ TV_HD void knn_search(const GridView<T>& grid, int64_t batch, Vec3<T> query, int
   for (int32_t r = 0;; ++r) {
     // Slabs and rows from the query's own outwards: the heap fills with
     // nearer candidates first, so fewer later ones replace its root.
-    for (int32_t step_z = 0; step_z <= 2 * r; ++step_z) {
+    for (int32_t step_z = 0; step_z <= rings.last_step(2, r); ++step_z) {
       const int32_t z = center_out(rings.cell[2], step_z);
       if (z < rings.low(2, r) || z > rings.high(2, r)) continue;
       // A whole slab of rows beyond the worst candidate: skip it.
       const T gap_z = rings.gap_z(z);
       if (heap.full() && gap_z * gap_z > heap.worst()) continue;
-      for (int32_t step_y = 0; step_y <= 2 * r; ++step_y) {
+      for (int32_t step_y = 0; step_y <= rings.last_step(1, r); ++step_y) {
         const int32_t y = center_out(rings.cell[1], step_y);
         if (y < rings.low(1, r) || y > rings.high(1, r)) continue;
         const RowRanges ranges = rings.row(r, z, y, gap_z, grid.cell_start, heap);

@@ -80,6 +80,24 @@ struct PoisonUnwrittenFunctor {
   }
 };
 
+// The records of the exact copies set aside after the grid's points
+// (set_copies_aside), positions first, first + 1, ...: DUPLICATE, volume 0,
+// centroid the point, one neighbour (the point it copies, as a cell that
+// finds its copy first among its neighbours).
+template <typename io_t>
+struct DuplicateRecordFunctor {
+  const io_t* points;  // (N, 3) by position
+  int64_t first;
+  int8_t* status;             // (N,) by position
+  CellRecord<io_t>* records;  // (N,) by position
+
+  TV_HD void operator()(int64_t i) const {
+    const int64_t p = first + i;
+    records[p] = {io_t(0), {points[3 * p], points[3 * p + 1], points[3 * p + 2]}, io_t(0), 1, core::kDuplicate};
+    status[p] = core::kDuplicate;
+  }
+};
+
 // position_of_row[row_of_position[p]] = p for the rows in [first_row,
 // end_row): the inverse of the grid order, over every position once per
 // range of rows. The writes scatter, and a range that the GPU's L2 cache

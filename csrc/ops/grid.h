@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <functional>
 #include <vector>
 
@@ -227,7 +228,7 @@ at::Tensor point_bounds(const at::Tensor& points, const c10::optional<at::Tensor
 template <typename Exec>
 Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch,
                 int64_t num_batches, double points_per_cell, at::Tensor bounds = {},
-                const at::Tensor& identity = {}) {
+                const at::Tensor& identity = {}, at::Tensor* sorted_ids_out = nullptr) {
   if (!bounds.defined()) bounds = point_bounds<Exec>(points, batch, num_batches);
   const double* bounds_ptr = bounds.data_ptr<double>();
 
@@ -292,7 +293,92 @@ Grid build_grid(const at::Tensor& points, const c10::optional<at::Tensor>& batch
   });
   grid.sorted_index = permutation;
   grid.cell_start = Exec::running_max(ends);  // (num_cells + 1,), N last
+  if (sorted_ids_out != nullptr) *sorted_ids_out = sorted_ids;
   return grid;
+}
+
+// Whether each sorted point is an exact copy of a point before it in its grid
+// cell (a lower row: the sorts are stable), looking back over at most
+// kLookBack points of the cell. Once copies are grouped (CopyKeyFunctor),
+// each follows another; a copy not found so is found by its cell, at
+// distance 0 (DUPLICATE all the same).
+template <typename T>
+struct CopyFlagFunctor {
+  static constexpr int64_t kLookBack = 32;
+  const T* sorted_points;     // (N, 3)
+  const int32_t* sorted_ids;  // (N,)
+  bool* is_copy;              // (N,)
+
+  TV_HD void operator()(int64_t i) const {
+    const int32_t id = sorted_ids[i];
+    const T x = sorted_points[3 * i], y = sorted_points[3 * i + 1], z = sorted_points[3 * i + 2];
+    bool copy = false;
+    for (int64_t q = i - 1; q >= 0 && q >= i - kLookBack && sorted_ids[q] == id && !copy; --q) {
+      copy = sorted_points[3 * q] == x && sorted_points[3 * q + 1] == y && sorted_points[3 * q + 2] == z;
+    }
+    is_copy[i] = copy;
+  }
+};
+
+// A sort key that groups equal points within their grid cell: the cell id
+// above a 32-bit hash of the coordinates' bits (-0 counted as +0, which
+// compares equal to it).
+template <typename T>
+struct CopyKeyFunctor {
+  const T* sorted_points;     // (N, 3)
+  const int32_t* sorted_ids;  // (N,)
+  int64_t* keys;              // (N,)
+
+  TV_HD void operator()(int64_t i) const {
+    uint64_t hash = 0x9E3779B97F4A7C15ull;
+    for (int a = 0; a < 3; ++a) {
+      const T value = sorted_points[3 * i + a] + T(0);
+      uint64_t bits = 0;
+      memcpy(&bits, &value, sizeof(T));
+      hash = (hash ^ bits) * 0xFF51AFD7ED558CCDull;
+      hash ^= hash >> 29;
+    }
+    keys[i] = (int64_t(sorted_ids[i]) << 32) | int64_t(hash & 0xFFFFFFFFull);
+  }
+};
+
+// Sets the exact copies aside: the grid then holds the other points, first
+// in its order, and the copies follow them, outside every grid cell, so that
+// no neighbour search returns one. A pass over the grid's order looks for
+// copies (CopyFlagFunctor); only if it finds one are equal points grouped
+// (a stable sort by CopyKeyFunctor's key, which keeps each cell's points
+// together) and looked for again. Returns the number of points kept (one
+// host read, two more where there are copies); sorted_index follows.
+template <typename Exec>
+int64_t set_copies_aside(Grid& grid, at::Tensor sorted_ids) {
+  const int64_t n = grid.sorted_points.size(0);
+  const at::Tensor is_copy = at::empty({n}, sorted_ids.options().dtype(at::kBool));
+  const auto flag_copies = [&] {
+    AT_DISPATCH_FLOATING_TYPES(grid.sorted_points.scalar_type(), "torchvor::copy_flags", [&] {
+      Exec::for_each(n, CopyFlagFunctor<scalar_t>{grid.sorted_points.data_ptr<scalar_t>(),
+                                                  sorted_ids.data_ptr<int32_t>(), is_copy.data_ptr<bool>()});
+    });
+    return is_copy.sum().item<int64_t>();
+  };
+  if (flag_copies() == 0) return n;
+  const at::Tensor keys = at::empty({n}, sorted_ids.options().dtype(at::kLong));
+  AT_DISPATCH_FLOATING_TYPES(grid.sorted_points.scalar_type(), "torchvor::copy_keys", [&] {
+    Exec::for_each(n, CopyKeyFunctor<scalar_t>{grid.sorted_points.data_ptr<scalar_t>(),
+                                               sorted_ids.data_ptr<int32_t>(), keys.data_ptr<int64_t>()});
+  });
+  const at::Tensor grouped = std::get<1>(at::sort(keys, /*stable=*/true, /*dim=*/0, /*descending=*/false));
+  grid.sorted_points = grid.sorted_points.index_select(0, grouped);
+  sorted_ids = sorted_ids.index_select(0, grouped);
+  const int64_t copies = flag_copies();
+  const at::Tensor kept = at::logical_not(is_copy);
+  const at::Tensor order = at::cat({kept.nonzero().flatten(), is_copy.nonzero().flatten()});
+  grid.sorted_points = grid.sorted_points.index_select(0, order);
+  grid.sorted_index = grid.sorted_index.index_select(0, grouped.index_select(0, order));
+  // A cell's new start: the points kept before its old start.
+  const at::Tensor kept_before = at::cat({at::zeros({1}, kept.options().dtype(at::kInt)),
+                                          kept.cumsum(0, at::kInt)});
+  grid.cell_start = kept_before.index_select(0, grid.cell_start.to(at::kLong)).contiguous();
+  return n - copies;
 }
 
 // Grid density for a k-nearest-neighbour query, in points a grid cell, times

@@ -66,18 +66,34 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   // duplicates keep their order and "the lowest index keeps the cell" holds.
   // The grid over the points by position has no index array (the kNN then
   // reads no index a candidate: GridView::original_index).
+  // Exact copies go behind the other points, outside the grid, as DUPLICATE
+  // cells (set_copies_aside): a point copied thousands of times would
+  // otherwise fill the neighbour lists of its cell and theirs with one plane.
   Grid grid;
   at::Tensor work_points;  // points by position
   c10::optional<at::Tensor> work_batch;
-  const at::Tensor& positions = prepared.positions;
-  const auto sort_into_grid = [&](double points_per_cell) {
-    const Grid sorted = build_grid<Exec>(points, batch, num_boxes, points_per_cell, bounds, positions);
-    out.row_of_position = sorted.sorted_index;
-    grid = sorted;
+  at::Tensor positions = prepared.positions;  // the cells to compute: every position but the copies'
+  const auto sort_into_grid_once = [&](double points_per_cell) {
+    at::Tensor sorted_ids;
+    grid = build_grid<Exec>(points, batch, num_boxes, points_per_cell, bounds, prepared.positions, &sorted_ids);
+    const int64_t kept = set_copies_aside<Exec>(grid, sorted_ids);
+    out.row_of_position = grid.sorted_index;
     grid.sorted_index = at::Tensor();
-    work_points = sorted.sorted_points;
-    work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, sorted.sorted_index))
+    work_points = grid.sorted_points;
+    work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, out.row_of_position))
                                    : c10::nullopt;
+    positions = prepared.positions.slice(0, 0, kept);
+    return kept;
+  };
+  // The grid at `points_per_cell` of the points it holds: when copies are
+  // most of the points, it is rebuilt as dense as their count says.
+  const auto sort_into_grid = [&](double points_per_cell) {
+    const int64_t kept = sort_into_grid_once(points_per_cell);
+    if (2 * kept < n) sort_into_grid_once(points_per_cell * double(n) / double(kept));
+    if (kept < n) {
+      Exec::for_each(n - kept, DuplicateRecordFunctor<io_t>{work_points.data_ptr<io_t>(), kept,
+                                                            out.status.data_ptr<int8_t>(), out.data<io_t>()});
+    }
   };
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass, c10::optional<double> neighbor_spread) {
     run_pass<Exec, io_t>(work_points, box, work_batch, grid, cells, pass, neighbor_spread, memory_budget, options,
