@@ -51,6 +51,9 @@ REGRESSIONS = [
     (3, 255, 20000, "float32", "4 clusters of spread 2.5e-4: a cell 5.4e-3 off (ill-conditioned vertices)"),
     (3, 358, 20000, "float32", "a cell a few ulps wide beside a box start: 4.9e-2 off (vertices' rounding decided cuts)"),
     (1, 228, 20000, "both", "5 points above a wall layer: TOO_MANY_PLANES at the largest tier"),
+    (2, 939, 20000, "both", "26 points on a line copied 14192 times: minutes in the kNN (grid sized for the copies)"),
+    (5, 1832, 20000, "float32", "needle cells 0.003 x 6 far from the origin: 2.3e-3 off (long side's rounding)"),
+    (4, 103, 1000000, "float32", "anisotropic lattice, cells 0.3 x 96: 5e-4 off (long side's rounding)"),
 ]
 
 
@@ -212,3 +215,4 @@ def test_comparison_with_the_cpu_flags_differences():
     campaign.compare_with_cpu(case, "default", changed)
     assert campaign.report.counts["silently_wrong"] == 2
     assert "differ from the CPU's" in campaign.report.problems[0].message
+

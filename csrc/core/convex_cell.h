@@ -365,7 +365,7 @@ TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
 template <typename T>
 struct CellRounding {
   T unsigned_volume;     // the tetrahedra's absolute volumes: the cancellation
-  T conditioned_volume;  // float: the same weighted by each vertex's condition
+  T conditioned_volume;  // float: the same weighted by how far rounding moves them (add_vertex)
 };
 
 // Volume, first moment and second moment (integral of |x|^2) of a cell,
@@ -380,7 +380,7 @@ template <typename T>
 struct CellMoments {
   T six_volume;              // 6 * volume
   T unsigned_six_volume;     // 6 * sum of |tetrahedron volume|
-  T conditioned_six_volume;  // float: the same, each vertex's weighted by its condition (add_vertex)
+  T conditioned_six_volume;  // float: the same, weighted by how far rounding moves them (add_vertex)
   Vec3<T> m1;                // 24 * first moment
   T m2;                      // 120 * second moment
 
@@ -390,9 +390,12 @@ struct CellMoments {
   // orientation) meet. Each foot is used by two tetrahedra: its |x|^2, and
   // the edge foot's cross product with v (the determinant of f, e, v is
   // f . (e x v)), are computed once for both.
-  // In float, each vertex's tetrahedra also count into
-  // conditioned_six_volume divided by the sine of its planes (|det| of their
-  // unit normals): the vertex's rounding error grows as 1 / sine.
+  // In float, each tetrahedron also counts into conditioned_six_volume times
+  // (1 / sine) |v| / h: the vertex is off by about eps |v| / sine (sine: the
+  // |det| of its planes' unit normals), which moves the boundary of the
+  // tetrahedron's face (at distance h from the seed) by as much, and the
+  // volume by the face's share, the tetrahedron's volume over h. It is what
+  // makes a needle cell, hundreds of times longer than wide, ill-conditioned.
   TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex) {
     const Vec3<T> v = vertex.position;
     Vec3<T> feet[3];
@@ -402,17 +405,19 @@ struct CellMoments {
       feet[e] = plane_foot(planes[e]);
       feet2[e] = dot(feet[e], feet[e]);
     }
-    // 1 / sine before the tetrahedra (one value to keep across them, not the
-    // normals' lengths); two factors under the roots, so tiny cells do not underflow.
-    T inverse_sine = T(0);
+    // The weights before the tetrahedra (three values to keep across them,
+    // not the normals); two factors under each root, so that tiny cells do
+    // not underflow. A face through the seed (h = 0) has no volume to move.
+    T weight[3] = {T(0), T(0), T(0)};
     if constexpr (std::is_same<T, float>::value) {
       const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
       const T sine = fabsf(det) *
                      rsqrt_of(dot(planes[0].normal, planes[0].normal) * dot(planes[1].normal, planes[1].normal)) *
                      rsqrt_of(dot(planes[2].normal, planes[2].normal));
-      inverse_sine = estimate_divide(T(1), sine);  // Inf or NaN if degenerate
+      const T length = estimate_divide(sqrt_of(vertex.radius2), sine);  // Inf or NaN if degenerate
+      TV_UNROLL
+      for (int e = 0; e < 3; ++e) weight[e] = feet2[e] > T(0) ? length * rsqrt_of(feet2[e]) : T(0);
     }
-    const T unsigned_before = unsigned_six_volume;
     TV_UNROLL
     for (int e = 0; e < 3; ++e) {
       const int f = (e + 1) % 3;
@@ -420,11 +425,9 @@ struct CellMoments {
       const Vec3<T> edge_cross_v = cross(edge_foot, v);
       const Vec3<T> edge_plus_v = edge_foot + v;
       const T edge_v2 = dot(edge_foot, edge_foot) + vertex.radius2;
-      add_tetrahedron(feet[e], feet2[e], edge_cross_v, edge_plus_v, edge_v2, T(1));
-      add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
-    }
-    if constexpr (std::is_same<T, float>::value) {
-      conditioned_six_volume += (unsigned_six_volume - unsigned_before) * inverse_sine;
+      const T on_e = add_tetrahedron(feet[e], feet2[e], edge_cross_v, edge_plus_v, edge_v2, T(1));
+      const T on_f = add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
+      if constexpr (std::is_same<T, float>::value) conditioned_six_volume += on_e * weight[e] + on_f * weight[f];
     }
   }
 
@@ -459,14 +462,16 @@ struct CellMoments {
   // Signed tetrahedron (seed, f, e, v), given |f|^2, e x v, e + v and
   // |e|^2 + |v|^2. Integral of |x|^2 over a tetrahedron with a vertex at the
   // origin: vol / 20 * (sum |p_i|^2 + |sum p_i|^2).
-  TV_HD void add_tetrahedron(Vec3<T> f, T f2, Vec3<T> edge_cross_v, Vec3<T> edge_plus_v, T edge_v2,
-                             T sign) {
+  // Adds one tetrahedron; returns its absolute six volume.
+  TV_HD T add_tetrahedron(Vec3<T> f, T f2, Vec3<T> edge_cross_v, Vec3<T> edge_plus_v, T edge_v2, T sign) {
     const T six_vol = sign * dot(f, edge_cross_v);
     const Vec3<T> sum = f + edge_plus_v;
+    const T absolute = six_vol < T(0) ? -six_vol : six_vol;
     six_volume += six_vol;
-    unsigned_six_volume += six_vol < T(0) ? -six_vol : six_vol;
+    unsigned_six_volume += absolute;
     m1 = m1 + six_vol * sum;
     m2 += six_vol * (f2 + edge_v2 + dot(sum, sum));
+    return absolute;
   }
 };
 

@@ -22,15 +22,16 @@ template <> struct CancellationLimit<float, float> { static constexpr double val
 template <> struct CancellationLimit<float, double> { static constexpr double value = 1e9; };
 template <> struct CancellationLimit<double, double> { static constexpr double value = 1e4; };
 
-// The same for the tetrahedra weighted by their vertices' condition
-// (CellRounding::conditioned_volume): a float vertex where nearly parallel
-// planes meet is off by about eps / sine, enough to misplace the cut of a
-// later plane. Float cells over the limit are recomputed in double. Set
-// where float32 cells of the fuzzer's inputs first exceed 1e-4 relative
-// volume error against float64 (docs/design.md); white noise and perturbed
-// grids stay below ~30.
+// The same for the tetrahedra weighted by how far rounding moves their
+// vertices (CellRounding::conditioned_volume: 1 / sine of the vertex's planes
+// times |v| / h): nearly parallel planes, or a needle or slab cell hundreds of
+// times longer than wide, whose float vertices are off by eps times the
+// long side. Float cells over the limit are recomputed in double. Set where
+// float32 cells of the fuzzer's inputs first exceed 1e-4 relative volume
+// error against float64 (docs/design.md); white noise and perturbed grids
+// stay below ~320.
 template <typename io_t, typename T> struct ConditionLimit { static constexpr double value = 0.0; };
-template <> struct ConditionLimit<float, float> { static constexpr double value = 1e4; };
+template <> struct ConditionLimit<float, float> { static constexpr double value = 700.0; };
 
 // Whether a cell type is clipped by its list alone, never finished on the
 // grid (Cell::kListOnly; UnboundedCell, whose list is its whole cloud).
