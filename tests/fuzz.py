@@ -48,7 +48,8 @@ Exit status 1 if any cell failed, any cell was silently wrong (or a cloud's
 volumes did not sum to its box), an unexpected exception was raised, or a
 case ran past --case-timeout (the campaign stops there). ``--time-budget S``
 starts no case after S seconds, so that a campaign fits a bounded call (the
-summary counts the cases that ran).
+summary counts the cases that ran). ``--workers W`` runs the cases in W
+processes (case I of the range in process I mod W) and reports them as one.
 """
 from __future__ import annotations
 
@@ -651,6 +652,66 @@ def summary(report: Report) -> str:
     return "\n".join(lines)
 
 
+def merge_reports(reports: Sequence[Dict]) -> Report:
+    """One Report from the as_dict() of several (the workers' shares of a campaign)."""
+    merged = Report(settings=reports[0]["settings"])
+    for part in reports:
+        for name, value in part["counts"].items():
+            merged.counts[name] += value
+        for kind, counts in part["per_kind"].items():
+            mine = merged.per_kind.setdefault(kind, dict.fromkeys(COUNTERS, 0))
+            for name, value in counts.items():
+                mine[name] += value
+        for ours, theirs in ((merged.skip_reasons, part["oracle_skip_reasons"]),
+                             (merged.oracle_notes, part["oracle_notes"])):
+            for key, value in theirs.items():
+                ours[key] = ours.get(key, 0) + value
+        merged.slowest += part["slowest"]
+        merged.problems += [Problem(**p) for p in part["problems"]]
+        merged.seconds = max(merged.seconds, part["seconds"])
+    merged.slowest = sorted(merged.slowest, key=lambda entry: -entry["seconds"])[:SLOWEST_CASES]
+    merged.problems.sort(key=lambda p: p.case)
+    return merged
+
+
+def run_workers(args, argv: List[str]) -> int:
+    """--workers W: W processes (this script with --worker w), each with its
+    share of the CPU's threads, on CUDA the GPUs in turn, and its case lines
+    in <json>.worker<w>.log (or the temporary folder's); one summary and
+    report for all."""
+    import subprocess
+    import tempfile
+
+    base = args.json or os.path.join(tempfile.mkdtemp(prefix="fuzz_"), "fuzz.json")
+    threads = str(max(1, (os.cpu_count() or 1) // args.workers))
+    env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+    gpus = torch.cuda.device_count() if args.device == "cuda" else 0
+    children = []
+    for w in range(args.workers):
+        if gpus > 1:
+            env = dict(env, CUDA_VISIBLE_DEVICES=str(w % gpus))
+        command = [sys.executable, os.path.abspath(__file__), *argv, "--worker", str(w),
+                   "--json", f"{base}.worker{w}"]
+        log = open(f"{base}.worker{w}.log", "w")
+        children.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log))
+    reports = []
+    for w, (child, log) in enumerate(children):
+        child.wait()
+        log.close()
+        try:
+            with open(f"{base}.worker{w}") as f:
+                reports.append(json.load(f))
+        except (OSError, ValueError):
+            print(f"fuzz: worker {w} left no report (exit status {child.returncode}): see {base}.worker{w}.log")
+            return 1
+    report = merge_reports(reports)
+    print(summary(report), flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report.as_dict(), f, indent=1, default=str)
+    return 0 if report.ok() and all(child.returncode in (0, 1) for child, _ in children) else 1
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -675,7 +736,12 @@ def main(argv=None) -> int:
                         help="start no case after this many seconds (0: no budget); the summary counts the cases run")
     parser.add_argument("--case-timeout", type=float, default=600.0,
                         help="stop the campaign, counting a timeout, when a case runs longer (seconds; 0: never)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="run the cases in this many processes (case i in process i %% workers), one report")
+    parser.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)  # this process's share
     args = parser.parse_args(argv)
+    if args.workers > 1 and args.worker is None:
+        return run_workers(args, sys.argv[1:] if argv is None else list(argv))
     kinds = [k.strip() for k in args.kinds.split(",")] if args.kinds else None
     for k in kinds or []:
         if k not in KINDS:
@@ -686,6 +752,8 @@ def main(argv=None) -> int:
                         sample=args.sample, suspects=args.suspects, kinds=kinds, compare_max_n=args.compare_max_n,
                         out=None if args.quiet else sys.stdout)
     indices = args.case if args.case is not None else range(args.start, args.start + args.cases)
+    if args.worker is not None:
+        indices = [index for position, index in enumerate(indices) if position % args.workers == args.worker]
 
     def finish():
         print(summary(campaign.report), flush=True)

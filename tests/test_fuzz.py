@@ -8,6 +8,8 @@ failure replays with the command printed next to each problem.
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import torch
 
@@ -216,3 +218,14 @@ def test_comparison_with_the_cpu_flags_differences():
     assert campaign.report.counts["silently_wrong"] == 2
     assert "differ from the CPU's" in campaign.report.problems[0].message
 
+
+def test_workers_report_as_one_campaign(tmp_path):
+    """--workers: the cases split over processes, one report whose counts
+    are those of the same cases run in one process."""
+    out = tmp_path / "fuzz.json"
+    assert fuzz.main(["--seed", str(CI_SEED), "--cases", "6", "--max-n", "300", "--workers", "2",
+                      "--quiet", "--json", str(out)]) == 0
+    merged = json.loads(out.read_text())
+    alone = fuzz.run_campaign(CI_SEED, range(6), max_n=300)
+    assert merged["counts"] == alone.counts
+    assert merged["per_kind"] == alone.per_kind
