@@ -406,17 +406,23 @@ struct CellMoments {
       feet2[e] = dot(feet[e], feet[e]);
     }
     // The weights before the tetrahedra (three values to keep across them,
-    // not the normals); two factors under each root, so that tiny cells do
-    // not underflow. A face through the seed (h = 0) has no volume to move.
+    // not the normals), from one reciprocal root a face and one a vertex: a
+    // face's 1 / h is 2 / |n| for a bisector (offset |n|^2 / 2), and |n| is 1
+    // for a box face. A face through the seed (h = 0, a box face) has no
+    // volume to move; a vertex at the seed, no rounding to move it.
     T weight[3] = {T(0), T(0), T(0)};
     if constexpr (std::is_same<T, float>::value) {
-      const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
-      const T sine = fabsf(det) *
-                     rsqrt_of(dot(planes[0].normal, planes[0].normal) * dot(planes[1].normal, planes[1].normal)) *
-                     rsqrt_of(dot(planes[2].normal, planes[2].normal));
-      const T length = estimate_divide(sqrt_of(vertex.radius2), sine);  // Inf or NaN if degenerate
+      T inverse_h[3], inverse_norms = T(1);
       TV_UNROLL
-      for (int e = 0; e < 3; ++e) weight[e] = feet2[e] > T(0) ? length * rsqrt_of(feet2[e]) : T(0);
+      for (int e = 0; e < 3; ++e) {
+        inverse_h[e] = feet2[e] > T(0) ? rsqrt_of(feet2[e]) : T(0);
+        inverse_norms *= dot(planes[e].normal, planes[e].normal) == T(1) ? T(1) : T(0.5) * inverse_h[e];
+      }
+      const T sine = fabsf(dot(cross(planes[0].normal, planes[1].normal), planes[2].normal)) * inverse_norms;
+      // |v| / sine; Inf or NaN where the planes are degenerate
+      const T length = vertex.radius2 > T(0) ? vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine) : T(0);
+      TV_UNROLL
+      for (int e = 0; e < 3; ++e) weight[e] = length * inverse_h[e];
     }
     TV_UNROLL
     for (int e = 0; e < 3; ++e) {
