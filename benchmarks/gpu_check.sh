@@ -22,6 +22,7 @@ fi
 # Verbose, each line stamped with the second it arrived: ninja prints a
 # compile's command when it finishes, so compile_times.txt lists when each
 # object was done.
+if [ -z "${SKIP_BUILD:-}" ]; then  # SKIP_BUILD=1: the build already there (steps run side by side)
 python3 -m pip install -v --no-build-isolation --no-deps --no-index -e . 2>&1 \
   | while IFS= read -r line; do printf '%(%s)T %s\n' -1 "$line"; done >"$OUT/build.log"
 [ "${PIPESTATUS[0]}" = 0 ] || { tail -60 "$OUT/build.log"; exit 1; }
@@ -29,6 +30,7 @@ echo "build: $(( $(date +%s) - start )) s"
 grep -E '^[0-9]+ +\[[0-9]+/[0-9]+\]' "$OUT/build.log" \
   | sed -E "s/^([0-9]+) +(\[[0-9]+\/[0-9]+\]).* -c ([^ ]+).*/\1 \2 \3/" \
   | awk -v start="$start" '{printf "%4d s  %s %s\n", $1 - start, $2, $3}' | tee "$OUT/compile_times.txt"
+fi
 status=0
 for step in "${@:-cudatests}"; do
   case "$step" in
