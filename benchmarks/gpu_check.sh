@@ -66,10 +66,10 @@ PY
            # FUZZ_MAX_N) in FUZZ_WORKERS processes (over the GPUs there are), each starting none after FUZZ_SECONDS (0: no budget);
            # a line a case in fuzz_cases.log
       python3 tests/fuzz.py --device cuda --cells all --cases ${FUZZ_CASES:-10000} --start ${FUZZ_START:-0} \
-        --seed ${FUZZ_SEED:-1} --max-n ${FUZZ_MAX_N:-1000000} --sample ${FUZZ_SAMPLE:-4} --workers ${FUZZ_WORKERS:-12} \
+        --seed ${FUZZ_SEED:-1} --max-n ${FUZZ_MAX_N:-1000000} --sample ${FUZZ_SAMPLE:-4} --workers ${FUZZ_WORKERS:-12} --grace ${FUZZ_GRACE:-60} \
         --compare-max-n ${FUZZ_COMPARE_MAX_N:-5000} --time-budget ${FUZZ_SECONDS:-0} --json "$OUT/fuzz.json" 2>&1 \
         | tail -80 > "$OUT/fuzz.log"; tail -40 "$OUT/fuzz.log"
-      cat "$OUT"/fuzz.json.worker*.log > "$OUT/fuzz_cases.log" 2>/dev/null; rm -f "$OUT"/fuzz.json.worker*
+      cat "$OUT"/fuzz.json.worker*.log > "$OUT/fuzz_cases.log" 2>/dev/null; rm -f "$OUT"/fuzz.json.worker*  # few files come back
       grep -q "^fuzz: OK" "$OUT/fuzz.log" || status=1 ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,

@@ -390,11 +390,13 @@ class Campaign:
         self.report.problems.append(p)
         self.log(f"  PROBLEM [{category}] {case.describe()}, cells={impl}: {message}\n    replay: {p.replay}")
 
-    def run(self, indices: Sequence[int], time_budget: float = 0.0) -> Report:
+    def run(self, indices: Sequence[int], time_budget: float = 0.0,
+            after_case: Optional[Callable[[Report], None]] = None) -> Report:
         """Runs the cases `indices` in order; with `time_budget` > 0 (seconds),
         starts no case once that much time has passed (the report's counts
-        say how many ran)."""
+        say how many ran). `after_case(report)` is called after each case."""
         start = time.perf_counter()
+        seconds_before = self.report.seconds
         for index in indices:
             if time_budget > 0 and time.perf_counter() - start > time_budget:
                 self.log(f"time budget of {time_budget:g} s spent: stopped before case {int(index)}")
@@ -402,7 +404,10 @@ class Campaign:
             self.current = (int(index), time.perf_counter())
             self.run_case(int(index))
             self.current = None
-        self.report.seconds += time.perf_counter() - start
+            if after_case is not None:
+                self.report.seconds = seconds_before + time.perf_counter() - start
+                after_case(self.report)
+        self.report.seconds = seconds_before + time.perf_counter() - start
         return self.report
 
     def watch(self, timeout: float, finish: Callable[[], None]) -> None:
@@ -694,22 +699,37 @@ def run_workers(args, argv: List[str]) -> int:
                    "--json", f"{base}.worker{w}"]
         log = open(f"{base}.worker{w}.log", "w")
         children.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log))
-    reports = []
+    # Past the time budget and --grace more, a worker still in a case is
+    # stopped; its report as of its last finished case counts.
+    deadline = time.monotonic() + args.time_budget + args.grace if args.time_budget > 0 else None
+    reports, stopped = [], []
     for w, (child, log) in enumerate(children):
-        child.wait()
+        try:
+            child.wait(timeout=None if deadline is None else max(1.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+            stopped.append(w)
         log.close()
         try:
             with open(f"{base}.worker{w}") as f:
                 reports.append(json.load(f))
         except (OSError, ValueError):
-            print(f"fuzz: worker {w} left no report (exit status {child.returncode}): see {base}.worker{w}.log")
-            return 1
+            if w not in stopped:
+                print(f"fuzz: worker {w} left no report (exit status {child.returncode}): see {base}.worker{w}.log")
+                return 1
+    if not reports:
+        print("fuzz: no worker finished a case")
+        return 1
     report = merge_reports(reports)
     print(summary(report), flush=True)
+    if stopped:
+        print(f"fuzz: workers {stopped} stopped {args.grace:g} s past the time budget, in a case not counted")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report.as_dict(), f, indent=1, default=str)
-    return 0 if report.ok() and all(child.returncode in (0, 1) for child, _ in children) else 1
+    return 0 if report.ok() and all(child.returncode == 0 for w, (child, _) in enumerate(children)
+                                    if w not in stopped) else 1
 
 
 def main(argv=None) -> int:
@@ -738,6 +758,8 @@ def main(argv=None) -> int:
                         help="stop the campaign, counting a timeout, when a case runs longer (seconds; 0: never)")
     parser.add_argument("--workers", type=int, default=1,
                         help="run the cases in this many processes (case i in process i %% workers), one report")
+    parser.add_argument("--grace", type=float, default=60.0,
+                        help="--workers with --time-budget: stop a worker this long past the budget (seconds)")
     parser.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)  # this process's share
     args = parser.parse_args(argv)
     if args.workers > 1 and args.worker is None:
@@ -763,7 +785,13 @@ def main(argv=None) -> int:
 
     if args.case_timeout > 0:
         campaign.watch(args.case_timeout, lambda: (finish(), os._exit(1)))
-    report = campaign.run(indices, time_budget=args.time_budget)
+    def save(report):  # a worker's report as of its last finished case (run_workers may stop it)
+        with open(args.json + ".part", "w") as f:
+            json.dump(report.as_dict(), f, default=str)
+        os.replace(args.json + ".part", args.json)
+
+    report = campaign.run(indices, time_budget=args.time_budget,
+                          after_case=save if args.worker is not None and args.json else None)
     finish()
     return 0 if report.ok() else 1
 
