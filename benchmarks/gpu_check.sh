@@ -63,7 +63,8 @@ PY
         done
       done) 2>&1 | tee "$OUT/compare_time.log" ;;
     fuzz)  # the fuzzing campaign on CUDA, thread and warp cells: FUZZ_CASES cases from FUZZ_START (FUZZ_SEED,
-           # FUZZ_MAX_N) in FUZZ_WORKERS processes (over the GPUs there are), each starting none after FUZZ_SECONDS (0: no budget);
+           # FUZZ_MAX_N) in FUZZ_WORKERS processes (over the GPUs there are), each starting none after FUZZ_SECONDS (0: no budget)
+           # and stopped FUZZ_GRACE seconds later;
            # a line a case in fuzz_cases.log
       python3 tests/fuzz.py --device cuda --cells all --cases ${FUZZ_CASES:-10000} --start ${FUZZ_START:-0} \
         --seed ${FUZZ_SEED:-1} --max-n ${FUZZ_MAX_N:-1000000} --sample ${FUZZ_SAMPLE:-4} --workers ${FUZZ_WORKERS:-12} --grace ${FUZZ_GRACE:-60} \
