@@ -609,6 +609,44 @@ def test_empty_inputs(device, dtype):
     assert result.idx.shape == (0, 2)
 
 
+# ------------------------------------------------------------------- gradients
+
+
+def test_dist2_gradients(device, gen):
+    """dist2 = |q - p|^2 is differentiable in the points and the queries
+    (2 (q - p) and its negative; gradcheck in float64, second order too),
+    through self queries, padding (-1: no gradient) and batches."""
+    points = rand(40, gen, torch.float64, device).requires_grad_()
+    queries = rand(9, gen, torch.float64, device).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p, q: torchvor.knn(p, 5, q).dist2, (points, queries))
+    assert torch.autograd.gradgradcheck(lambda p, q: torchvor.knn(p, 5, q).dist2, (points, queries))
+    assert torch.autograd.gradcheck(lambda p: torchvor.knn(p, 6).dist2, (points,))
+    few = points[:3].detach().clone().requires_grad_()
+    padded = torchvor.knn(few, 5, queries)
+    assert (padded.idx == -1).any()
+    padded.dist2.masked_fill(padded.idx < 0, 0.0).sum().backward()
+    assert torch.isfinite(few.grad).all() and torch.isfinite(queries.grad).all()
+    batch = ragged_batch([25, 0, 15], device)
+    assert torch.autograd.gradcheck(lambda p: torchvor.knn(p, 4, batch=batch).dist2, (points,))
+
+
+def test_dist2_gradient_formula(device, dtype, gen):
+    """The gradient of sum(dist2) equals sum over the pairs of 2 (q - p) for
+    the query and -2 (q - p) for the neighbour."""
+    points = rand(300, gen, dtype, device).requires_grad_()
+    queries = rand(50, gen, dtype, device).requires_grad_()
+    result = torchvor.knn(points, 7, queries)
+    result.dist2.sum().backward()
+    diff = (queries.detach().unsqueeze(1) - points.detach()[result.idx]).double()
+    expected_q = 2 * diff.sum(1)
+    expected_p = torch.zeros(300, 3, dtype=torch.float64, device=device).index_add(
+        0, result.idx.reshape(-1), -2 * diff.reshape(-1, 3))
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(queries.grad.double(), expected_q, rtol=tol, atol=tol)
+    torch.testing.assert_close(points.grad.double(), expected_p, rtol=tol, atol=tol)
+    assert not result.idx.requires_grad
+
+
 # ------------------------------------------------------- opcheck / torch.compile
 
 

@@ -118,3 +118,17 @@ def test_compile_voronoi(device, dtype, gen):
             assert torch.equal(a, b)
         for a, b in zip(compiled_g(points), g(points)):
             torch.testing.assert_close(a, b)
+
+
+def test_outputs_marked_non_differentiable(device, dtype, gen):
+    """Until their backward exists, the Voronoi ops' outputs do not look
+    differentiable: a loss through them raises instead of silently getting
+    no gradient."""
+    points = rand(200, gen, dtype, device).requires_grad_()
+    cells = torchvor.voronoi(points, UNIT)
+    for name in ("volume", "centroid", "second_moment"):
+        assert not getattr(cells, name).requires_grad
+    with pytest.raises(RuntimeError, match="does not require grad"):
+        cells.volume.sum().backward()
+    moved = torchvor.lloyd(points, UNIT, iters=1)
+    assert not moved.requires_grad

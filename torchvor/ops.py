@@ -353,6 +353,46 @@ def _knn_fake(points, queries, k, batch=None, query_batch=None, exclude_self=Fal
     return queries.new_empty((m, k)), queries.new_empty((m, k), dtype=torch.int64)
 
 
+# ---- autograd ---------------------------------------------------------------------------
+# knn's squared distances are differentiable (d |q - p|^2 = 2 (q - p) . (dq - dp)); the
+# indices are piecewise constant. The Voronoi ops' outputs are marked non-differentiable
+# until their backward exists: a loss through them raises instead of a silent zero.
+
+
+def _knn_setup_context(ctx, inputs, output) -> None:
+    points, queries = inputs[0], inputs[1]
+    _dist2, idx = output
+    ctx.mark_non_differentiable(idx)
+    ctx.save_for_backward(points, queries, idx)
+
+
+def _knn_backward(ctx, grad_dist2, _grad_idx):
+    points, queries, idx = ctx.saved_tensors
+    found = idx >= 0  # padding (-1, dist2 = inf) has no gradient
+    neighbor = idx.clamp(min=0)
+    weight = torch.where(found, grad_dist2, torch.zeros_like(grad_dist2))
+    toward_query = 2 * weight.unsqueeze(-1) * (queries.unsqueeze(1) - points[neighbor])  # (M, k, 3)
+    grad_points = grad_queries = None
+    if ctx.needs_input_grad[1]:
+        grad_queries = toward_query.sum(1)
+    if ctx.needs_input_grad[0]:
+        grad_points = torch.zeros_like(points).index_add(0, neighbor.reshape(-1), -toward_query.reshape(-1, 3))
+    return grad_points, grad_queries, None, None, None, None
+
+
+def _non_differentiable(ctx, inputs, output) -> None:
+    ctx.mark_non_differentiable(*output)
+
+
+def _no_backward(ctx, *grads):
+    raise RuntimeError("torchvor: this op's outputs are not differentiable")
+
+
+torch.library.register_autograd("torchvor::knn", _knn_backward, setup_context=_knn_setup_context)
+for _op in ("voronoi_cells", "voronoi_cells_grid_order", "lloyd_step"):
+    torch.library.register_autograd(f"torchvor::{_op}", _no_backward, setup_context=_non_differentiable)
+
+
 @torch.library.register_fake("torchvor::voronoi_cells")
 def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET):
     n = points.shape[0]
