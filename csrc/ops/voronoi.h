@@ -88,8 +88,8 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   // The grid at `points_per_cell` of the points it holds: when copies are
   // most of the points, it is rebuilt as dense as their count says.
   const auto sort_into_grid = [&](double points_per_cell) {
-    const int64_t kept = sort_into_grid_once(points_per_cell);
-    if (2 * kept < n) sort_into_grid_once(points_per_cell * double(n) / double(kept));
+    int64_t kept = sort_into_grid_once(points_per_cell);
+    if (2 * kept < n) kept = sort_into_grid_once(points_per_cell * double(n) / double(kept));
     if (kept < n) {
       Exec::for_each(n - kept, DuplicateRecordFunctor<io_t>{work_points.data_ptr<io_t>(), kept,
                                                             out.status.data_ptr<int8_t>(), out.data<io_t>()});
