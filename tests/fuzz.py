@@ -700,7 +700,7 @@ def run_workers(args, argv: List[str]) -> int:
 
     base = args.json or os.path.join(tempfile.mkdtemp(prefix="fuzz_"), "fuzz.json")
     threads = str(max(1, (os.cpu_count() or 1) // args.workers))
-    env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+    env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads)
     gpus = torch.cuda.device_count() if args.device == "cuda" else 0
     children = []
     for w in range(args.workers):

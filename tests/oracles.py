@@ -264,30 +264,53 @@ def _interior_point(halfspaces: np.ndarray) -> np.ndarray:
     return res.x[:3]
 
 
-def _face_fans(verts: np.ndarray, planes_of_vertex, normals: np.ndarray) -> np.ndarray:
+def _refined_vertices(hs: np.ndarray, intersections: np.ndarray, facets) -> np.ndarray:
+    """Each of Qhull's vertices solved again, by least squares (an SVD, as
+    numpy's lstsq), on the planes Qhull says meet there; Qhull's own where the
+    solution is not finite. Vertices of three planes are solved together."""
+    verts = np.array(intersections, dtype=np.float64)
+    sizes = np.fromiter((len(f) for f in facets), dtype=np.int64, count=len(facets))
+    three = np.nonzero(sizes == 3)[0]
+    if len(three):
+        planes = hs[np.array([facets[v] for v in three], dtype=np.int64)]  # (m, 3, 4)
+        u, s, vh = np.linalg.svd(planes[:, :, :3])
+        keep = s > np.finfo(np.float64).eps * 3 * s[:, :1]  # lstsq's rcond=None cut-off
+        coef = np.where(keep, np.einsum("mji,mj->mi", u, -planes[:, :, 3]) / np.where(keep, s, 1.0), 0.0)
+        sol = np.einsum("mji,mj->mi", vh, coef)
+        good = np.all(np.isfinite(sol), axis=1)
+        verts[three[good]] = sol[good]
+    for v in np.nonzero(sizes != 3)[0]:
+        planes = hs[list(facets[v])]
+        sol, *_ = np.linalg.lstsq(planes[:, :3], -planes[:, 3], rcond=None)
+        if np.all(np.isfinite(sol)):
+            verts[v] = sol
+    return verts
+
+
+def _face_fans(verts: np.ndarray, vertex_of: np.ndarray, plane_of: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Triangles (F, 3, 3) covering the cell's boundary: each face's vertices
-    (those on its plane) in angular order around the face's mean, fanned.
+    (those on its plane: the incidences vertex_of[j] on plane_of[j], each
+    once) in angular order around the face's mean, fanned.
     Built from the plane incidences rather than a convex hull of the vertices:
     Qhull's hull of a needle cell's vertices can stop with a precision error."""
-    on_plane = {}
-    for v, planes in enumerate(planes_of_vertex):
-        for h in planes:
-            on_plane.setdefault(h, []).append(v)
-    triangles = []
-    for h, ids in on_plane.items():
-        if len(ids) < 3:
-            continue
-        ids = np.asarray(ids)
-        normal = normals[h] / np.linalg.norm(normals[h])
-        axis = np.eye(3)[np.argmin(np.abs(normal))]  # the axis least aligned with the normal
-        u = np.cross(normal, axis)
-        u /= np.linalg.norm(u)
-        w = np.cross(normal, u)
-        offsets = verts[ids] - verts[ids].mean(0)
-        ring = ids[np.argsort(np.arctan2(offsets @ w, offsets @ u))]
-        for t in range(1, len(ring) - 1):
-            triangles.append(verts[[ring[0], ring[t], ring[t + 1]]])
-    return np.asarray(triangles)
+    planes, group, counts = np.unique(plane_of, return_inverse=True, return_counts=True)
+    group = group.reshape(-1)
+    normal = normals[planes] / np.linalg.norm(normals[planes], axis=1, keepdims=True)
+    axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]  # the axis least aligned with each normal
+    u = np.cross(normal, axis)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    w = np.cross(normal, u)
+    mean = np.zeros((len(planes), 3))
+    np.add.at(mean, group, verts[vertex_of])
+    mean /= counts[:, None]
+    offsets = verts[vertex_of] - mean[group]
+    angle = np.arctan2(np.einsum("ij,ij->i", offsets, w[group]), np.einsum("ij,ij->i", offsets, u[group]))
+    order = np.lexsort((angle, group))  # by face, then around it
+    ring, face = vertex_of[order], group[order]
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    local = np.arange(len(ring)) - start[face]
+    fan = np.nonzero((local >= 1) & (local <= counts[face] - 2))[0]  # faces of fewer than 3 vertices give none
+    return np.stack([verts[ring[start[face[fan]]]], verts[ring[fan]], verts[ring[fan + 1]]], axis=1)
 
 
 def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
@@ -336,22 +359,18 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
         # are refined on their planes below anyway.
         hsi = HalfspaceIntersection(hs, interior, qhull_options="Q12 Pp")
     # refine every vertex by least squares on the planes Qhull says meet there
-    verts, planes_of = [], []
-    for point, facet in zip(hsi.intersections, hsi.dual_facets):
-        planes = hs[facet]
-        sol, *_ = np.linalg.lstsq(planes[:, :3], -planes[:, 3], rcond=None)
-        verts.append(sol if np.all(np.isfinite(sol)) else point)
-        planes_of.append(set(int(f) for f in facet))
-    verts = np.asarray(verts)
+    facets = [list(f) for f in hsi.dual_facets]
+    verts = _refined_vertices(hs, hsi.intersections, facets)
     # merge coinciding vertices (a degenerate vertex comes once per plane triple)
     key = np.round(verts / (1e-11 * scale)).astype(np.int64)
     _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
     group = group.reshape(-1)
-    merged = [set() for _ in first]
-    for g, planes in zip(group, planes_of):
-        merged[g] |= planes
     verts = verts[first]
-    tri = _face_fans(verts, merged, hs[:, :3])  # (F, 3, 3)
+    sizes = [len(f) for f in facets]
+    # each (merged vertex, plane) incidence once
+    pairs = np.unique(np.stack([np.repeat(group, sizes), np.concatenate(facets).astype(np.int64)], axis=1), axis=0)
+    vertex_of, plane_of = pairs[:, 0], pairs[:, 1]
+    tri = _face_fans(verts, vertex_of, plane_of, hs[:, :3])  # (F, 3, 3)
     centre = verts.mean(0)
     c = np.broadcast_to(centre, tri[:, 0].shape)
     # Extended precision (x87 long double on x86): a needle cell (1e-5 wide,
@@ -361,11 +380,8 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     volume = float(vol.sum())
     centroid = (first_moment.sum(0) / vol.sum()).astype(np.float64)
     # a plane bounds a facet when at least 3 distinct vertices lie on it
-    count = {}
-    for planes in merged:
-        for h in planes:
-            count[h] = count.get(h, 0) + 1
-    facets = sorted(int(owner[h]) for h, cnt in count.items() if cnt >= 3 and owner[h] >= 0)
+    planes, count = np.unique(plane_of, return_counts=True)
+    facets = sorted(int(owner[h]) for h, cnt in zip(planes, count) if cnt >= 3 and owner[h] >= 0)
     area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
     return CellOracle(volume, centroid + seed, float(second.sum()), verts + seed,
                       np.array(facets, dtype=np.int64), seed, area=area)
