@@ -90,7 +90,7 @@ import torch, torchvor
 p = torch.load('/tmp/jittered_1m.pt').cuda()
 torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.synchronize()
 " 2>&1 | grep -v '^==PROF==' | tee "$OUT/ncu.log" | grep -E "Duration|Throughput|Registers|Achieved Occupancy|Theoretical Occupancy|Stall|Warp Cycles|Local|L1/TEX Hit|L2 Hit|Eligible|Issued|Block Limit|Dynamic|Static|Executed Ipc" ;;
-    sanitize)  # SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
+    sanitize)  # white noise (SANITIZE_N points) under each SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
                # e.g. "default TORCHVOR_CELLS=cooperative,TORCHVOR_CELL_START=box"
       for setting in ${SANITIZE_SETTINGS:-default}; do
         for tool in memcheck racecheck synccheck; do
@@ -104,6 +104,14 @@ r = torchvor.lloyd(p, ([0,0,0],[1,1,1]), iters=2)  # two lloyd_step ops
 torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(), 'lloyd', r.sum().item())
 " 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
         done
+      done
+      # and a slice of the fuzzing campaign (SANITIZE_FUZZ_CASES cases of up to SANITIZE_FUZZ_MAX_N
+      # points, thread and warp cells, seed SANITIZE_FUZZ_SEED) under each tool
+      for tool in memcheck racecheck synccheck; do
+        echo "$tool: fuzz slice" | tee -a "$OUT/sanitize.log"
+        compute-sanitizer --tool $tool --error-exitcode 9 python3 tests/fuzz.py --device cuda --cells all \
+          --cases ${SANITIZE_FUZZ_CASES:-30} --seed ${SANITIZE_FUZZ_SEED:-1} --max-n ${SANITIZE_FUZZ_MAX_N:-3000} \
+          --sample 1 --suspects 0 --quiet 2>&1 | tail -4 | tee -a "$OUT/sanitize.log" || status=1
       done ;;
     build) ;;  # the build alone
     *) echo "gpu_check.sh: unknown step '$step'" >&2; status=1 ;;
