@@ -447,7 +447,7 @@ class Campaign:
         case = make_case(self.seed, index, max_n=self.max_n, dtype=self.dtype, kinds=self.kinds)
         self.report.add(case.kind, "cases")
         t0 = time.perf_counter()
-        trees = {}  # what the runs of a case share: its cKDTrees by cloud, its exact copies
+        trees = {}  # what the runs of a case share: its cKDTrees by cloud, its exact copies, its float64 cells
         before = {name: self.report.counts[name] for name in COUNTERS}
         for impl in self.impls:
             self.current_impl = impl
@@ -533,24 +533,27 @@ class Campaign:
                 self.problem(case, impl, "wrong_volume_sum",
                              f"cloud {cloud}: the volumes sum to {total!r}, its box's volume is {box_volume!r} "
                              f"(rel {abs(total / box_volume - 1):.2e}, tolerance {SUM_RTOL[dtype]:.0e})")
-        suspects = self.float32_suspects(case, cells, ok & finite) if dtype == torch.float32 else []
+        suspects = self.float32_suspects(case, cells, ok & finite, trees) if dtype == torch.float32 else []
         self.check_sample(case, impl, cells, ok & finite, trees, suspects)
 
-    def float32_suspects(self, case: Case, cells, ok: np.ndarray) -> List[int]:
+    def float32_suspects(self, case: Case, cells, ok: np.ndarray, trees: Dict) -> List[int]:
         """The `suspects` SUCCESS cells of a float32 run whose volumes differ
         most (relatively, beyond 1e-6) from torchvor's float64 cells of the
-        same points: candidates for the oracle, which decides."""
+        same points (the default cells, computed once a case): candidates for
+        the oracle, which decides."""
         if self.suspects <= 0 or case.n == 0:
             return []
-        points, box, batch = case.arguments(self.device)
-        if isinstance(box, torch.Tensor):
-            box = box.double()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            wide = torchvor.voronoi(points.double(), box, batch=batch, on_failure="flag")
+        if "float64" not in trees:
+            points, box, batch = case.arguments(self.device)
+            if isinstance(box, torch.Tensor):
+                box = box.double()
+            with _cells_impl("default"), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                wide = torchvor.voronoi(points.double(), box, batch=batch, on_failure="flag")
+            trees["float64"] = (wide.volume.cpu().numpy(), wide.status.cpu().numpy())
+        v64, status64 = trees["float64"]
         v32 = cells.volume.double().numpy()
-        v64 = wide.volume.cpu().numpy()
-        both = ok & (cells.status.numpy() == CellStatus.SUCCESS) & (wide.status.cpu().numpy() == CellStatus.SUCCESS)
+        both = ok & (cells.status.numpy() == CellStatus.SUCCESS) & (status64 == CellStatus.SUCCESS)
         with np.errstate(divide="ignore", invalid="ignore"):
             rel = np.where(both & (v64 > 0), np.abs(v32 / v64 - 1), 0.0)
         order = np.argsort(-rel, kind="stable")[: self.suspects]

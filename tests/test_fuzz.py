@@ -56,6 +56,7 @@ REGRESSIONS = [
     (2, 939, 20000, "both", "26 points on a line copied 14192 times: minutes in the kNN (grid sized for the copies)"),
     (5, 1832, 20000, "float32", "needle cells 0.003 x 6 far from the origin: 2.3e-3 off (long side's rounding)"),
     (4, 103, 1000000, "float32", "anisotropic lattice, cells 0.3 x 96: 5e-4 off (long side's rounding)"),
+    (11, 1349, 1000000, "both", "anisotropic lattice, cells 2 x 2e-4 (float64): 1.2e-9 off (long side's rounding)"),
 ]
 
 

@@ -216,6 +216,14 @@ TV_HD float rsqrt_of(float x) {
 #endif
 }
 
+TV_HD double rsqrt_of(double x) {
+#if defined(__CUDA_ARCH__)
+  return rsqrt(x);
+#else
+  return 1.0 / sqrt(x);
+#endif
+}
+
 // The bits of a float, and the float of some bits. memcpy is a register
 // move on both compilers (nvcc and GCC), and well defined.
 TV_HD uint32_t float_bits(float x) {

@@ -365,7 +365,7 @@ TV_HD bool short_cycle_needs_no_walk(int length) { return length <= 5; }
 template <typename T>
 struct CellRounding {
   T unsigned_volume;     // the tetrahedra's absolute volumes: the cancellation
-  T conditioned_volume;  // float: the same weighted by how far rounding moves them (add_vertex)
+  T conditioned_volume;  // float, double: the same weighted by how far rounding moves them (add_vertex)
 };
 
 // Volume, first moment and second moment (integral of |x|^2) of a cell,
@@ -380,9 +380,13 @@ template <typename T>
 struct CellMoments {
   T six_volume;              // 6 * volume
   T unsigned_six_volume;     // 6 * sum of |tetrahedron volume|
-  T conditioned_six_volume;  // float: the same, weighted by how far rounding moves them (add_vertex)
+  T conditioned_six_volume;  // float, double: the same, weighted by how far rounding moves them (add_vertex)
   Vec3<T> m1;                // 24 * first moment
   T m2;                      // 120 * second moment
+
+  // Whether the cell weighs its tetrahedra by their vertices' rounding
+  // (float and double; not double-double, the last resort).
+  static constexpr bool kConditioned = std::is_same<T, float>::value || std::is_same<T, double>::value;
 
   TV_HD static CellMoments zero() { return {T(0), T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
 
@@ -390,7 +394,7 @@ struct CellMoments {
   // orientation) meet. Each foot is used by two tetrahedra: its |x|^2, and
   // the edge foot's cross product with v (the determinant of f, e, v is
   // f . (e x v)), are computed once for both.
-  // In float, each tetrahedron also counts into conditioned_six_volume times
+  // In float and double, each tetrahedron also counts into conditioned_six_volume times
   // (1 / sine) |v| / h: the vertex is off by about eps |v| / sine (sine: the
   // |det| of its planes' unit normals), which moves the boundary of the
   // tetrahedron's face (at distance h from the seed) by as much, and the
@@ -411,14 +415,15 @@ struct CellMoments {
     // for a box face. A face through the seed (h = 0, a box face) has no
     // volume to move; a vertex at the seed, no rounding to move it.
     T weight[3] = {T(0), T(0), T(0)};
-    if constexpr (std::is_same<T, float>::value) {
+    if constexpr (kConditioned) {
       T inverse_h[3], inverse_norms = T(1);
       TV_UNROLL
       for (int e = 0; e < 3; ++e) {
         inverse_h[e] = feet2[e] > T(0) ? rsqrt_of(feet2[e]) : T(0);
         inverse_norms *= dot(planes[e].normal, planes[e].normal) == T(1) ? T(1) : T(0.5) * inverse_h[e];
       }
-      const T sine = fabsf(dot(cross(planes[0].normal, planes[1].normal), planes[2].normal)) * inverse_norms;
+      const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
+      const T sine = (det < T(0) ? -det : det) * inverse_norms;
       // |v| / sine; Inf or NaN where the planes are degenerate
       const T length = vertex.radius2 > T(0) ? vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine) : T(0);
       TV_UNROLL
@@ -433,7 +438,7 @@ struct CellMoments {
       const T edge_v2 = dot(edge_foot, edge_foot) + vertex.radius2;
       const T on_e = add_tetrahedron(feet[e], feet2[e], edge_cross_v, edge_plus_v, edge_v2, T(1));
       const T on_f = add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
-      if constexpr (std::is_same<T, float>::value) conditioned_six_volume += on_e * weight[e] + on_f * weight[f];
+      if constexpr (kConditioned) conditioned_six_volume += on_e * weight[e] + on_f * weight[f];
     }
   }
 
