@@ -9,6 +9,12 @@ TORCH_LIBRARY(torchvor, m) {
   m.def(
       "knn(Tensor points, Tensor queries, int k, Tensor? batch=None, Tensor? query_batch=None, "
       "bool exclude_self=False) -> (Tensor dist2, Tensor idx)");
+  // Every point within distance r of each query (|p - q| <= r), of the
+  // query's batch element: idx (E,) int64 the point, row (E,) int64 the
+  // query, dist2 (E,) points' dtype, sorted by (row, dist2, idx).
+  m.def(
+      "radius(Tensor points, Tensor queries, float r, Tensor? batch=None, Tensor? query_batch=None, "
+      "bool exclude_self=False) -> (Tensor idx, Tensor row, Tensor dist2)");
   // Voronoi cells of points clipped to box (B, 2, 3): volume (N,), centroid
   // (N, 3), second moment about the seed (N,), status (N,) int8, and the
   // number of nearest neighbours each cell needed (N,) int32. k: first-pass
