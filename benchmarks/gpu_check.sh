@@ -59,7 +59,10 @@ PY
       for round in 1 2; do
         for build in "$REPO" "$BASELINE"; do
           echo "round $round: $build"
-          PYTHONPATH="$build" python3 "$REPO/scripts/compare_builds.py" time /tmp/blue_10m.pt /tmp/perturbed_10m.pt /tmp/white_10m.pt --device cuda
+          for dtype in ${COMPARE_DTYPES:-float32}; do  # e.g. COMPARE_DTYPES="float32 float64"
+            PYTHONPATH="$build" python3 "$REPO/scripts/compare_builds.py" time /tmp/blue_10m.pt /tmp/perturbed_10m.pt \
+              /tmp/white_10m.pt --device cuda --dtype $dtype
+          done
         done
       done) 2>&1 | tee "$OUT/compare_time.log" ;;
     fuzz)  # the fuzzing campaign on CUDA, thread and warp cells: FUZZ_CASES cases from FUZZ_START (FUZZ_SEED,

@@ -136,8 +136,8 @@ def compare(a_path: str, b_path: str) -> int:
     return 1 if bad else 0
 
 
-def time_calls(paths, device: str, repeats: int = 15) -> None:
-    """Median time of a voronoi_cells call (the op's default k) on each saved point set."""
+def time_calls(paths, device: str, repeats: int = 15, dtype: str = "float32") -> None:
+    """Median time of a voronoi_cells call (the op's default k) on each saved point set, in `dtype`."""
     import statistics
     import time
 
@@ -145,8 +145,8 @@ def time_calls(paths, device: str, repeats: int = 15) -> None:
 
     print(f"torchvor from {torchvor.__file__}")
     for path in paths:
-        points = torch.load(path).to(device=device, dtype=torch.float32).contiguous()
-        box = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]], device=device)
+        points = torch.load(path).to(device=device, dtype=getattr(torch, dtype)).contiguous()
+        box = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]], device=device, dtype=points.dtype)
         times = []
         for i in range(repeats + 3):
             if device == "cuda":
@@ -162,7 +162,7 @@ def time_calls(paths, device: str, repeats: int = 15) -> None:
                 elapsed = 1e3 * (time.perf_counter() - begin)
             if i >= 3:
                 times.append(elapsed)
-        print(f"{path}: median {statistics.median(times):.3f} ms, min {min(times):.3f} ms over {repeats}")
+        print(f"{path} ({dtype}): median {statistics.median(times):.3f} ms, min {min(times):.3f} ms over {repeats}")
 
 
 def main(argv=None) -> int:
@@ -177,9 +177,10 @@ def main(argv=None) -> int:
     t = sub.add_parser("time")
     t.add_argument("points", nargs="+")
     t.add_argument("--device", default="cpu")
+    t.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     args = parser.parse_args(argv)
     if args.command == "time":
-        time_calls(args.points, args.device)
+        time_calls(args.points, args.device, dtype=args.dtype)
         return 0
     if args.command == "run":
         outputs = run(args.device)
