@@ -216,12 +216,12 @@ TV_HD float rsqrt_of(float x) {
 #endif
 }
 
-// 1 / sqrt(x) to about float's precision, for estimates: float's root (one
-// instruction on the GPU, where double's is a sequence) within float's range.
-TV_HD float estimate_rsqrt(float x) { return rsqrt_of(x); }
-TV_HD double estimate_rsqrt(double x) {
-  if (x > 1e-37 && x < 1e37) return double(rsqrt_of(float(x)));
+TV_HD double rsqrt_of(double x) {
+#if defined(__CUDA_ARCH__)
+  return rsqrt(x);
+#else
   return 1.0 / sqrt(x);
+#endif
 }
 
 // The bits of a float, and the float of some bits. memcpy is a register

@@ -419,13 +419,13 @@ struct CellMoments {
       T inverse_h[3], inverse_norms = T(1);
       TV_UNROLL
       for (int e = 0; e < 3; ++e) {
-        inverse_h[e] = feet2[e] > T(0) ? estimate_rsqrt(feet2[e]) : T(0);
+        inverse_h[e] = feet2[e] > T(0) ? rsqrt_of(feet2[e]) : T(0);
         inverse_norms *= dot(planes[e].normal, planes[e].normal) == T(1) ? T(1) : T(0.5) * inverse_h[e];
       }
       const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
       const T sine = (det < T(0) ? -det : det) * inverse_norms;
       // |v| / sine; Inf or NaN where the planes are degenerate
-      const T length = vertex.radius2 > T(0) ? vertex.radius2 * estimate_rsqrt(vertex.radius2 * sine * sine) : T(0);
+      const T length = vertex.radius2 > T(0) ? vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine) : T(0);
       TV_UNROLL
       for (int e = 0; e < 3; ++e) weight[e] = length * inverse_h[e];
     }
