@@ -18,15 +18,17 @@ if ! "$VENV_PY" -c "import torch" 2>/dev/null; then
   "$VENV_PY" -m pip install -q torch==2.13.0
 fi
 
-# Test and build dependencies, installed only when one is missing (or setuptools
-# is older than 77, the first to read pyproject's SPDX license).
+# Test and build dependencies (torch_geometric: pure Python, for torchvor.pyg's tests),
+# installed only when one is missing (or setuptools is older than 77, the first to
+# read pyproject's SPDX license).
 if ! "$VENV_PY" - 2>/dev/null <<'PY'
 import importlib.metadata
 import numpy, scipy, pytest, wheel, ninja  # noqa: F401
 assert int(importlib.metadata.version("setuptools").split(".")[0]) >= 77
+assert importlib.metadata.version("torch_geometric") == "2.8.0.post1"  # torchvor.pyg's tests (pure Python)
 PY
 then
-  "$VENV_PY" -m pip install -q numpy scipy pytest "setuptools>=77" wheel ninja
+  "$VENV_PY" -m pip install -q numpy scipy pytest "setuptools>=77" wheel ninja torch_geometric==2.8.0.post1
 fi
 
 # What the built extension depends on (sources, build files, torch and Python
