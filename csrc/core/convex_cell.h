@@ -414,7 +414,9 @@ struct CellMoments {
     // face's 1 / h is 2 / |n| for a bisector (offset |n|^2 / 2), and |n| is 1
     // for a box face. A face through the seed (h = 0, a box face) has no
     // volume to move; a vertex at the seed, no rounding to move it.
-    T weight[3] = {T(0), T(0), T(0)};
+    // The weights are ratios of lengths (|v| / (sine h) >= 1), kept in float:
+    // in double they are three more register pairs across the tetrahedra.
+    float weight[3] = {0.0f, 0.0f, 0.0f};
     if constexpr (kConditioned) {
       T inverse_h[3], inverse_norms = T(1);
       TV_UNROLL
@@ -427,7 +429,7 @@ struct CellMoments {
       // |v| / sine; Inf or NaN where the planes are degenerate
       const T length = vertex.radius2 > T(0) ? vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine) : T(0);
       TV_UNROLL
-      for (int e = 0; e < 3; ++e) weight[e] = length * inverse_h[e];
+      for (int e = 0; e < 3; ++e) weight[e] = static_cast<float>(length * inverse_h[e]);
     }
     TV_UNROLL
     for (int e = 0; e < 3; ++e) {
@@ -438,7 +440,7 @@ struct CellMoments {
       const T edge_v2 = dot(edge_foot, edge_foot) + vertex.radius2;
       const T on_e = add_tetrahedron(feet[e], feet2[e], edge_cross_v, edge_plus_v, edge_v2, T(1));
       const T on_f = add_tetrahedron(feet[f], feet2[f], edge_cross_v, edge_plus_v, edge_v2, T(-1));
-      if constexpr (kConditioned) conditioned_six_volume += on_e * weight[e] + on_f * weight[f];
+      if constexpr (kConditioned) conditioned_six_volume += on_e * T(weight[e]) + on_f * T(weight[f]);
     }
   }
 
