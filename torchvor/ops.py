@@ -99,21 +99,9 @@ def knn(
     Returns:
         :class:`KNN` ``(dist2, idx)`` of shape (M, k), sorted by distance.
     """
-    if queries is None:
-        queries = points
-        exclude_self = True if exclude_self is None else exclude_self
-        if query_batch is None:
-            query_batch = batch
-    elif exclude_self:
-        raise ValueError("torchvor.knn: exclude_self=True needs queries=None (queries are the points)")
-    else:
-        exclude_self = False
-        if batch is not None and query_batch is None:
-            raise ValueError("torchvor.knn: query_batch is required when batch and queries are given")
+    queries, query_batch, exclude_self = _queries_of("knn", points, queries, batch, query_batch, exclude_self)
     if not isinstance(k, int) or isinstance(k, bool):
         raise TypeError(f"torchvor.knn: k must be an int, got {type(k).__name__}")
-    _check_tensor(points, "points")
-    _check_tensor(queries, "queries")
     dist2, idx = torch.ops.torchvor.knn.default(points, queries, k, batch, query_batch, exclude_self)
     return KNN(dist2, idx)
 
@@ -337,6 +325,26 @@ def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optio
     """
     *outputs, order = torch.ops.torchvor.voronoi_cells_grid_order.default(points, box, batch, k, memory_budget)
     return VoronoiCells(*outputs), order
+
+
+def _queries_of(caller: str, points, queries, batch, query_batch, exclude_self):
+    """(queries, query_batch, exclude_self) of a neighbour search (knn, radius):
+    the points themselves by default, skipping each query's own point unless
+    told otherwise; given queries need their own batch vector with `batch`."""
+    if queries is None:
+        queries = points
+        exclude_self = True if exclude_self is None else exclude_self
+        if query_batch is None:
+            query_batch = batch
+    elif exclude_self:
+        raise ValueError(f"torchvor.{caller}: exclude_self=True needs queries=None (queries are the points)")
+    else:
+        exclude_self = False
+        if batch is not None and query_batch is None:
+            raise ValueError(f"torchvor.{caller}: query_batch is required when batch and queries are given")
+    _check_tensor(points, "points")
+    _check_tensor(queries, "queries")
+    return queries, query_batch, exclude_self
 
 
 def _check_tensor(value, name: str) -> None:

@@ -10,7 +10,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .ops import _check_tensor, knn  # loads torchvor._C
+from .ops import _queries_of, knn  # loads torchvor._C
 
 
 class Radius(NamedTuple):
@@ -58,19 +58,7 @@ def radius(
     Returns:
         :class:`Radius` ``(edge_index, dist2)``, E edges sorted by query, then distance.
     """
-    if queries is None:
-        queries = points
-        exclude_self = True if exclude_self is None else exclude_self
-        if query_batch is None:
-            query_batch = batch
-    elif exclude_self:
-        raise ValueError("torchvor.radius: exclude_self=True needs queries=None (queries are the points)")
-    else:
-        exclude_self = False
-        if batch is not None and query_batch is None:
-            raise ValueError("torchvor.radius: query_batch is required when batch and queries are given")
-    _check_tensor(points, "points")
-    _check_tensor(queries, "queries")
+    queries, query_batch, exclude_self = _queries_of("radius", points, queries, batch, query_batch, exclude_self)
     if isinstance(r, torch.Tensor) and r.numel() == 1:
         r = r.item()
     if isinstance(r, bool) or not isinstance(r, (int, float)):
