@@ -15,10 +15,40 @@
 namespace torchvor {
 namespace ops {
 
+// Orders a query's m found points by (squared distance, index), in place:
+// a heap sort (the keys are distinct, so the order is total and no
+// stability is needed), O(m log m) for any m.
+template <typename T>
+TV_HD void sort_by_distance(T* dist2, int64_t* index, int64_t m) {
+  const auto less = [&](int64_t a, int64_t b) {
+    return dist2[a] < dist2[b] || (dist2[a] == dist2[b] && index[a] < index[b]);
+  };
+  const auto swap = [&](int64_t a, int64_t b) {
+    const T d = dist2[a];
+    dist2[a] = dist2[b];
+    dist2[b] = d;
+    const int64_t i = index[a];
+    index[a] = index[b];
+    index[b] = i;
+  };
+  const auto sift_down = [&](int64_t root, int64_t end) {  // a max-heap on [0, end)
+    for (int64_t child = 2 * root + 1; child < end; root = child, child = 2 * root + 1) {
+      if (child + 1 < end && less(child, child + 1)) ++child;
+      if (!less(root, child)) return;
+      swap(root, child);
+    }
+  };
+  for (int64_t start = m / 2 - 1; start >= 0; --start) sift_down(start, m);
+  for (int64_t end = m - 1; end > 0; --end) {
+    swap(0, end);
+    sift_down(0, end);
+  }
+}
+
 // Query q's points within r (|p - q|^2 <= r^2, q itself left out when
 // `exclude_self`), visited row by row of the grid cells that the query's
 // cube of half side r meets: counted (counts, the count pass) or written
-// from offsets[q] on (the fill pass), in the grid's order.
+// from offsets[q] on and sorted by distance (the fill pass).
 template <typename T>
 struct RadiusFunctor {
   core::GridView<T> grid;
@@ -68,12 +98,17 @@ struct RadiusFunctor {
         }
       }
     }
-    if (counts) counts[q] = found;
+    if (counts) {
+      counts[q] = found;
+    } else {
+      sort_by_distance(out_dist2, out_index, found);
+    }
   }
 };
 
 // Every point within r of each query: (index (E,) int64, row (E,) int64 the
-// query, dist2 (E,)), sorted by row, then squared distance, then index.
+// query, dist2 (E,)), sorted by row (each query's points are written from its
+// offset on), then squared distance, then index.
 // Points and queries of different batch elements never pair.
 template <typename Exec>
 std::tuple<at::Tensor, at::Tensor, at::Tensor> radius_forward(const at::Tensor& points_in,
@@ -133,12 +168,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> radius_forward(const at::Tensor& 
     }
     row = at::arange(m, long_options).repeat_interleave(counts, /*dim=*/0, /*output_size=*/total);
   });
-  // Each query's points by (squared distance, index): stable sorts by the
-  // last key first. Rows stay grouped (a stable sort by row comes last).
-  at::Tensor order = std::get<1>(at::sort(index, /*stable=*/true, /*dim=*/0, /*descending=*/false));
-  order = order.index_select(0, std::get<1>(at::sort(dist2.index_select(0, order), true, 0, false)));
-  order = order.index_select(0, std::get<1>(at::sort(row.index_select(0, order), true, 0, false)));
-  return {index.index_select(0, order), row.index_select(0, order), dist2.index_select(0, order)};
+  return {index, row, dist2};
 }
 
 }  // namespace ops
