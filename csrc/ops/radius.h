@@ -54,6 +54,7 @@ struct RadiusFunctor {
   core::GridView<T> grid;
   const T* queries;             // (M, 3)
   const int64_t* query_batch;   // (M,) or nullptr
+  const int32_t* order;         // step t searches query order[t]: grid order, nearby queries read the same cells
   T r, r2;
   bool exclude_self;
   int64_t* counts;              // count pass: (M,); nullptr in the fill pass
@@ -61,7 +62,8 @@ struct RadiusFunctor {
   int64_t* index;               // fill pass: (E,) the points' indices
   T* dist2;                     // fill pass: (E,) their squared distances
 
-  TV_HD void operator()(int64_t q) const {
+  TV_HD void operator()(int64_t t) const {
+    const int64_t q = order[t];
     const int64_t b = query_batch ? query_batch[q] : 0;
     const core::Vec3<T> x = core::load_vec3(queries + 3 * q);
     const core::Vec3<T> local = x - core::load_vec3(grid.origin + 3 * b);
@@ -140,12 +142,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> radius_forward(const at::Tensor& 
   // A few points a cell: a ball much wider than a cell visits about twice
   // as many points as it holds, one much narrower a few cells.
   const Grid grid = build_grid<Exec>(points, points_batch, num_batches, /*points_per_cell=*/4.0, bounds);
+  // Queries in grid order (the points' own when they are the queries).
+  const at::Tensor order = exclude_self && !points_batch.has_value()
+                               ? grid.sorted_index
+                               : Exec::stable_order(cell_ids<Exec>(queries, queries_batch, grid),
+                                                    cell_id_bits(grid.cell_start.size(0) - 1));
   at::Tensor counts = at::zeros({m}, long_options);
   at::Tensor index, row, dist2;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::radius", [&] {
     RadiusFunctor<scalar_t> functor{grid.view<scalar_t>(),
                                     queries.data_ptr<scalar_t>(),
                                     queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
+                                    order.data_ptr<int32_t>(),
                                     static_cast<scalar_t>(r),
                                     static_cast<scalar_t>(r) * static_cast<scalar_t>(r),
                                     exclude_self,
