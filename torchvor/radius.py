@@ -80,8 +80,10 @@ def radius(
 def _nearest_within(points, r, queries, batch, query_batch, cap, exclude_self) -> Radius:
     """The nearest `cap` points of each query, those within r: a kNN of k = cap
     (memory M x cap), sorted as the kNN sorts, by distance then index."""
-    result = knn(points, cap, queries if not exclude_self else None, batch=batch,
-                 query_batch=None if exclude_self else query_batch, exclude_self=exclude_self or None)
+    if exclude_self:  # the queries are the points
+        result = knn(points, cap, batch=batch, exclude_self=True)
+    else:
+        result = knn(points, cap, queries, batch=batch, query_batch=query_batch)
     row = torch.arange(queries.shape[0], device=queries.device).repeat_interleave(cap)
     rounded = torch.tensor(r, dtype=torch.float64).to(result.dist2.dtype)  # r^2 rounded as the op rounds it
     edge_index = torch.stack([result.idx.reshape(-1), row])

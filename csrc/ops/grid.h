@@ -386,6 +386,16 @@ int64_t set_copies_aside(Grid& grid, at::Tensor sorted_ids) {
 // let the distance pruning of the ring search scan little more than the
 // k-ball itself; below 1.5 points a cell the clip gives back what the kNN
 // gains (docs/design.md).
+// The order a neighbour search visits its queries in: grid order, so that
+// neighbouring queries read the same cells. When the queries are the grid's
+// own points, its sort already holds that order (`queries_are_points`).
+template <typename Exec>
+at::Tensor query_order(const Grid& grid, const at::Tensor& queries, const c10::optional<at::Tensor>& queries_batch,
+                       bool queries_are_points) {
+  if (queries_are_points) return grid.sorted_index;
+  return Exec::stable_order(cell_ids<Exec>(queries, queries_batch, grid), cell_id_bits(grid.cell_start.size(0) - 1));
+}
+
 inline double points_per_cell_for(int64_t k, double scale) {
   return scale * std::min(32.0, std::max(1.5, double(k) / 16.0));
 }

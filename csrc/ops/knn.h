@@ -149,10 +149,7 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   // When the queries are the points, the grid's sorted copy holds them in
   // that order already (sequential reads).
   const bool queries_are_points = exclude_self && !points_batch.has_value();
-  const at::Tensor order = queries_are_points
-                               ? grid.sorted_index
-                               : Exec::stable_order(cell_ids<Exec>(queries, queries_batch, grid),
-                                                    cell_id_bits(grid.cell_start.size(0) - 1));
+  const at::Tensor order = query_order<Exec>(grid, queries, queries_batch, queries_are_points);
   const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
     run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), ordered_queries.data_ptr<scalar_t>(),

@@ -142,11 +142,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> radius_forward(const at::Tensor& 
   // A few points a cell: a ball much wider than a cell visits about twice
   // as many points as it holds, one much narrower a few cells.
   const Grid grid = build_grid<Exec>(points, points_batch, num_batches, /*points_per_cell=*/4.0, bounds);
-  // Queries in grid order (the points' own when they are the queries).
-  const at::Tensor order = exclude_self && !points_batch.has_value()
-                               ? grid.sorted_index
-                               : Exec::stable_order(cell_ids<Exec>(queries, queries_batch, grid),
-                                                    cell_id_bits(grid.cell_start.size(0) - 1));
+  const at::Tensor order = query_order<Exec>(grid, queries, queries_batch, exclude_self && !points_batch.has_value());
   at::Tensor counts = at::zeros({m}, long_options);
   at::Tensor index, row, dist2;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::radius", [&] {
