@@ -447,11 +447,11 @@ class Campaign:
         case = make_case(self.seed, index, max_n=self.max_n, dtype=self.dtype, kinds=self.kinds)
         self.report.add(case.kind, "cases")
         t0 = time.perf_counter()
-        trees = {}  # what the runs of a case share: its cKDTrees by cloud, its exact copies, its float64 cells
+        shared = {}  # what the runs of a case share: its cKDTrees by cloud, its exact copies, its float64 cells
         before = {name: self.report.counts[name] for name in COUNTERS}
         for impl in self.impls:
             self.current_impl = impl
-            self.run_one(case, impl, trees)
+            self.run_one(case, impl, shared)
         seconds = time.perf_counter() - t0
         self.report.slowest.append({"seconds": round(seconds, 2), "case": case.describe(),
                                     "replay": replay_command(case, self.report.settings)})
@@ -462,7 +462,7 @@ class Campaign:
         self.log(f"{case.describe()}: {delta['certified']} certified, {delta['oracle_skipped']} skipped"
                  f"{', ' + bad if bad else ''} [{seconds:.1f} s]")
 
-    def run_one(self, case: Case, impl: str, trees: Dict) -> None:
+    def run_one(self, case: Case, impl: str, shared: Dict) -> None:
         """Runs torchvor.voronoi on `case` under `impl` and checks the result."""
         kind = case.kind
         self.report.add(kind, "runs")
@@ -489,11 +489,11 @@ class Campaign:
         if self.device.type == "cuda":
             torch.cuda.synchronize()
         cpu = torchvor.VoronoiCells(*(t.cpu() for t in cells))
-        self.check_cells(case, impl, cpu, trees)
+        self.check_cells(case, impl, cpu, shared)
         if self.device.type == "cuda":
             self.compare_with_cpu(case, impl, cpu)
 
-    def check_cells(self, case: Case, impl: str, cells, trees: Dict) -> None:
+    def check_cells(self, case: Case, impl: str, cells, shared: Dict) -> None:
         """Statuses, finite outputs, duplicates, volume sums, and the oracle sample."""
         kind, dtype = case.kind, case.dtype
         status = cells.status.numpy().astype(np.int64)
@@ -514,9 +514,9 @@ class Campaign:
             self.problem(case, impl, "silently_wrong", f"{len(bad)} cells with status SUCCESS/DUPLICATE have "
                          f"non-finite or negative outputs: cells {bad[:10].tolist()}", cell=int(bad[0]),
                          count=len(bad))
-        if "exact_copies" not in trees:  # the case's, for each of its runs
-            trees["exact_copies"] = _exact_copies(case)
-        bad = _duplicate_mismatch(trees["exact_copies"], status)
+        if "exact_copies" not in shared:  # the case's, for each of its runs
+            shared["exact_copies"] = _exact_copies(case)
+        bad = _duplicate_mismatch(shared["exact_copies"], status)
         if len(bad):
             self.report.add(kind, "silently_wrong", len(bad))
             self.problem(case, impl, "silently_wrong", f"{len(bad)} cells whose DUPLICATE status disagrees with "
@@ -533,25 +533,25 @@ class Campaign:
                 self.problem(case, impl, "wrong_volume_sum",
                              f"cloud {cloud}: the volumes sum to {total!r}, its box's volume is {box_volume!r} "
                              f"(rel {abs(total / box_volume - 1):.2e}, tolerance {SUM_RTOL[dtype]:.0e})")
-        suspects = self.float32_suspects(case, cells, ok & finite, trees) if dtype == torch.float32 else []
-        self.check_sample(case, impl, cells, ok & finite, trees, suspects)
+        suspects = self.float32_suspects(case, cells, ok & finite, shared) if dtype == torch.float32 else []
+        self.check_sample(case, impl, cells, ok & finite, shared, suspects)
 
-    def float32_suspects(self, case: Case, cells, ok: np.ndarray, trees: Dict) -> List[int]:
+    def float32_suspects(self, case: Case, cells, ok: np.ndarray, shared: Dict) -> List[int]:
         """The `suspects` SUCCESS cells of a float32 run whose volumes differ
         most (relatively, beyond 1e-6) from torchvor's float64 cells of the
         same points (the default cells, computed once a case): candidates for
         the oracle, which decides."""
         if self.suspects <= 0 or case.n == 0:
             return []
-        if "float64" not in trees:
+        if "float64" not in shared:
             points, box, batch = case.arguments(self.device)
             if isinstance(box, torch.Tensor):
                 box = box.double()
             with _cells_impl("default"), warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 wide = torchvor.voronoi(points.double(), box, batch=batch, on_failure="flag")
-            trees["float64"] = (wide.volume.cpu().numpy(), wide.status.cpu().numpy())
-        v64, status64 = trees["float64"]
+            shared["float64"] = (wide.volume.cpu().numpy(), wide.status.cpu().numpy())
+        v64, status64 = shared["float64"]
         v32 = cells.volume.double().numpy()
         both = ok & (cells.status.numpy() == CellStatus.SUCCESS) & (status64 == CellStatus.SUCCESS)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -559,7 +559,7 @@ class Campaign:
         order = np.argsort(-rel, kind="stable")[: self.suspects]
         return [int(j) for j in order if rel[j] > 1e-6]
 
-    def check_sample(self, case: Case, impl: str, cells, ok: np.ndarray, trees: Dict, suspects=()) -> None:
+    def check_sample(self, case: Case, impl: str, cells, ok: np.ndarray, shared: Dict, suspects=()) -> None:
         """The sampled cells and `suspects` against the oracle
         (check_against_oracle on the cell's local candidates)."""
         from scipy.spatial import cKDTree
@@ -573,11 +573,11 @@ class Campaign:
         with oracle.installed():
             for i in pick_sample(cells, ok, self.sample, rng, suspects):
                 members, (lo, hi) = clouds[int(cloud_of[i])]
-                if int(cloud_of[i]) not in trees:
-                    trees[int(cloud_of[i])] = cKDTree(case.points[members])
+                if int(cloud_of[i]) not in shared:
+                    shared[int(cloud_of[i])] = cKDTree(case.points[members])
                 local = int(np.searchsorted(members, i))
                 try:
-                    sub = local_candidates(oracle, trees[int(cloud_of[i])], case.points[members], local, (lo, hi),
+                    sub = local_candidates(oracle, shared[int(cloud_of[i])], case.points[members], local, (lo, hi),
                                            self.oracle_max_points)
                     sub = without_copies(case.points[members], sub, local)
                     rows = torch.as_tensor(members[sub])
