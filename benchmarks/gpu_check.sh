@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, then run the steps named (default: cudatests):
 # the tests (CPU and CUDA), the benchmarks, profiles and sanitizers; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|compare|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
+#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
 # compare needs BASELINE=<source tree of another commit> (e.g. `git archive <commit> | tar -x -C .baseline`):
 # it is built beside this tree, its CUDA outputs compared bit for bit, and both timed in turns.
 set -u -o pipefail
@@ -31,6 +31,25 @@ grep -E '^[0-9]+ +\[[0-9]+/[0-9]+\]' "$OUT/build.log" \
   | sed -E "s/^([0-9]+) +(\[[0-9]+\/[0-9]+\]).* -c ([^ ]+).*/\1 \2 \3/" \
   | awk -v start="$start" '{printf "%4d s  %s %s\n", $1 - start, $2, $3}' | tee "$OUT/compile_times.txt"
 fi
+# Times voronoi at the default k on 10M blue, perturbed and white points, two rounds,
+# the builds given in turns, each dtype of COMPARE_DTYPES (default float32).
+time_builds() {
+  (cd /tmp && PYTHONPATH="$REPO" python3 - <<'PY'
+import torch, torchvor.samples as s
+torch.save(s.blue_noise(10_000_000, iters=30, device="cuda").cpu(), "/tmp/blue_10m.pt")
+torch.save(s.perturbed_grid(10_000_000), "/tmp/perturbed_10m.pt")
+torch.save(s.white_noise(10_000_000), "/tmp/white_10m.pt")
+PY
+  for round in 1 2; do
+    for build in "$@"; do
+      echo "round $round: $build"
+      for dtype in ${COMPARE_DTYPES:-float32}; do
+        PYTHONPATH="$build" python3 "$REPO/scripts/compare_builds.py" time /tmp/blue_10m.pt /tmp/perturbed_10m.pt \
+          /tmp/white_10m.pt --device cuda --dtype $dtype
+      done
+    done
+  done)
+}
 status=0
 for step in "${@:-cudatests}"; do
   case "$step" in
@@ -50,21 +69,8 @@ for step in "${@:-cudatests}"; do
       (cd /tmp && PYTHONPATH="$REPO" python3 "$REPO/scripts/compare_builds.py" run /tmp/new.pt --device cuda \
         && PYTHONPATH="$BASELINE" python3 "$REPO/scripts/compare_builds.py" run /tmp/old.pt --device cuda \
         && python3 "$REPO/scripts/compare_builds.py" compare /tmp/old.pt /tmp/new.pt) 2>&1 | tee "$OUT/compare.log" || status=1
-      (cd /tmp && PYTHONPATH="$REPO" python3 - <<'PY'
-import torch, torchvor.samples as s
-torch.save(s.blue_noise(10_000_000, iters=30, device="cuda").cpu(), "/tmp/blue_10m.pt")
-torch.save(s.perturbed_grid(10_000_000), "/tmp/perturbed_10m.pt")
-torch.save(s.white_noise(10_000_000), "/tmp/white_10m.pt")
-PY
-      for round in 1 2; do
-        for build in "$REPO" "$BASELINE"; do
-          echo "round $round: $build"
-          for dtype in ${COMPARE_DTYPES:-float32}; do  # e.g. COMPARE_DTYPES="float32 float64"
-            PYTHONPATH="$build" python3 "$REPO/scripts/compare_builds.py" time /tmp/blue_10m.pt /tmp/perturbed_10m.pt \
-              /tmp/white_10m.pt --device cuda --dtype $dtype
-          done
-        done
-      done) 2>&1 | tee "$OUT/compare_time.log" ;;
+      time_builds "$REPO" "$BASELINE" 2>&1 | tee "$OUT/compare_time.log" ;;
+    time) time_builds "$REPO" 2>&1 | tee "$OUT/time.log" ;;  # this build alone, as compare times it
     fuzz)  # the fuzzing campaign on CUDA, thread and warp cells: FUZZ_CASES cases from FUZZ_START (FUZZ_SEED,
            # FUZZ_MAX_N) in FUZZ_WORKERS processes (over the GPUs there are), each starting none after FUZZ_SECONDS (0: no budget)
            # and stopped FUZZ_GRACE seconds later;
