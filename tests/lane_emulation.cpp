@@ -247,6 +247,57 @@ int compare(const char* name, const Points& points, int first, int cells, int k,
   return disagreeing;
 }
 
+// The rounding measures (CellRounding) of N lanes against one thread, in T:
+// every lane must hold the whole cell's sums, not its own slots' share, since
+// each lane decides from them whether the cell is ill-conditioned. Returns
+// the cells that disagree.
+template <int N, typename T>
+int compare_rounding(const char* name, const Points& points, int cells, int k) {
+  constexpr int kPlanes = 64, kTriangles = 128;
+  const float box[6] = {0.f, 0.f, 0.f, 1.f, 1.f, 1.f};
+  const T tolerance = T(core::ClipTolerance<T>::value);
+  int disagreeing = 0;
+  for (int seed = 0; seed < cells; ++seed) {
+    const std::vector<int32_t> neighbors = nearest(points, seed, k);
+    const int count = int(neighbors.size());
+    core::ConvexCell<T, kPlanes, kTriangles> thread_cell;
+    if (core::compute_cell(thread_cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, true)
+            .status != core::kSuccess) {
+      continue;
+    }
+    T volume, second_moment;
+    core::Vec3<T> first_moment;
+    core::CellRounding<T> expected;
+    thread_cell.integrate(volume, first_moment, second_moment, expected);
+    core::CooperativeCellArrays<T, kPlanes, kTriangles> arrays;
+    Board board(N);
+    core::CellRounding<T> got[N];
+    std::vector<std::thread> lanes;
+    for (int l = 0; l < N; ++l) {
+      lanes.emplace_back([&, l] {
+        core::CooperativeCell<T, kPlanes, kTriangles, EmulatedLanes<N>> cell(arrays, EmulatedLanes<N>{l, &board});
+        core::compute_cell(cell, points.xyz.data(), seed, neighbors.data(), 1, count, box, tolerance, true);
+        T v, m2;
+        core::Vec3<T> m1;
+        cell.integrate(v, m1, m2, got[l]);
+      });
+    }
+    for (std::thread& lane : lanes) lane.join();
+    const auto close = [](T a, T b) { return std::fabs(double(a) - double(b)) <= 1e-4 * std::fabs(double(b)); };
+    for (int l = 0; l < N; ++l) {
+      if (!close(got[l].unsigned_volume, expected.unsigned_volume) ||
+          !close(got[l].conditioned_volume, expected.conditioned_volume)) {
+        std::printf("%s, %d lanes: cell %d, lane %d: rounding measures %g, %g (thread %g, %g)\n", name, N, seed, l,
+                    double(got[l].unsigned_volume), double(got[l].conditioned_volume),
+                    double(expected.unsigned_volume), double(expected.conditioned_volume));
+        ++disagreeing;
+        break;
+      }
+    }
+  }
+  return disagreeing;
+}
+
 template <int N>
 int compare_all(const Points& white, const Points& clustered, const SortedGrid& white_grid,
                 const SortedGrid& clustered_grid, int cells) {
@@ -286,7 +337,9 @@ int main(int argc, char** argv) {
   const SortedGrid white_grid(white), clustered_grid(clustered);
   const int disagreeing = compare_all<8>(white, clustered, white_grid, clustered_grid, cells) +
                           compare_all<16>(white, clustered, white_grid, clustered_grid, cells) +
-                          compare_all<32>(white, clustered, white_grid, clustered_grid, cells);
+                          compare_all<32>(white, clustered, white_grid, clustered_grid, cells) +
+                          compare_rounding<8, float>("white noise, float", white, cells, 40) +
+                          compare_rounding<32, double>("white noise, double", white, cells, 40);
   std::printf("seed %u: %d cells per case, %d disagreeing\n", seed, cells, disagreeing);
   return disagreeing == 0 ? 0 : 1;
 }

@@ -195,7 +195,7 @@ struct CooperativeCell {
     });
     moments.six_volume = lanes.sum(moments.six_volume);
     moments.unsigned_six_volume = lanes.sum(moments.unsigned_six_volume);
-    if constexpr (std::is_same<T, float>::value) {
+    if constexpr (CellMoments<T>::kConditioned) {
       moments.conditioned_six_volume = lanes.sum(moments.conditioned_six_volume);
     }
     moments.m1 = {lanes.sum(moments.m1.x), lanes.sum(moments.m1.y), lanes.sum(moments.m1.z)};
