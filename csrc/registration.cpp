@@ -23,6 +23,16 @@ TORCH_LIBRARY(torchvor, m) {
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors_needed)");
+  // The cells of voronoi_cells and their faces: edge_index (2, E) int64,
+  // the neighbour j (row 0) across a face of cell i (row 1), sorted by i
+  // then j, each face in both directions; face_area (E,), face_centroid
+  // (E, 3), and wall_area (N, 6), the cells' areas on the box walls -x, +x,
+  // -y, +y, -z, +z (ops/voronoi_graph.h).
+  m.def(
+      "voronoi_graph(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
+      "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "Tensor status, Tensor neighbors_needed, Tensor edge_index, Tensor face_area, Tensor face_centroid, "
+      "Tensor wall_area)");
   // The same cells in the op's grid order (cells of nearby points in nearby
   // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
   // skips the scattered gather to the caller's rows; torchvor.lloyd keeps its

@@ -241,6 +241,8 @@ class CellOracle:
     seed: np.ndarray  # (3,) the point itself
     duplicate: bool = False
     area: float = 0.0  # surface area of the cell
+    # face areas and centroids (absolute), by the point across (>= 0) or the wall (-1 - w)
+    faces: Optional[dict] = None
 
     @property
     def radius(self) -> float:
@@ -287,8 +289,10 @@ def _refined_vertices(hs: np.ndarray, intersections: np.ndarray, facets) -> np.n
     return verts
 
 
-def _face_fans(verts: np.ndarray, vertex_of: np.ndarray, plane_of: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Triangles (F, 3, 3) covering the cell's boundary: each face's vertices
+def _face_fans(verts: np.ndarray, vertex_of: np.ndarray, plane_of: np.ndarray, normals: np.ndarray,
+               with_planes: bool = False):
+    """Triangles (F, 3, 3) covering the cell's boundary (and, with_planes, the
+    plane (F,) of each): each face's vertices
     (those on its plane: the incidences vertex_of[j] on plane_of[j], each
     once) in angular order around the face's mean, fanned.
     Built from the plane incidences rather than a convex hull of the vertices:
@@ -310,7 +314,8 @@ def _face_fans(verts: np.ndarray, vertex_of: np.ndarray, plane_of: np.ndarray, n
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     local = np.arange(len(ring)) - start[face]
     fan = np.nonzero((local >= 1) & (local <= counts[face] - 2))[0]  # faces of fewer than 3 vertices give none
-    return np.stack([verts[ring[start[face[fan]]]], verts[ring[fan]], verts[ring[fan + 1]]], axis=1)
+    triangles = np.stack([verts[ring[start[face[fan]]]], verts[ring[fan]], verts[ring[fan + 1]]], axis=1)
+    return (triangles, planes[face[fan]]) if with_planes else triangles
 
 
 def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
@@ -370,7 +375,7 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     # each (merged vertex, plane) incidence once
     pairs = np.unique(np.stack([np.repeat(group, sizes), np.concatenate(facets).astype(np.int64)], axis=1), axis=0)
     vertex_of, plane_of = pairs[:, 0], pairs[:, 1]
-    tri = _face_fans(verts, vertex_of, plane_of, hs[:, :3])  # (F, 3, 3)
+    tri, tri_plane = _face_fans(verts, vertex_of, plane_of, hs[:, :3], with_planes=True)  # (F, 3, 3), (F,)
     centre = verts.mean(0)
     c = np.broadcast_to(centre, tri[:, 0].shape)
     # Extended precision (x87 long double on x86): a needle cell (1e-5 wide,
@@ -382,9 +387,19 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     # a plane bounds a facet when at least 3 distinct vertices lie on it
     planes, count = np.unique(plane_of, return_counts=True)
     facets = sorted(int(owner[h]) for h, cnt in zip(planes, count) if cnt >= 3 and owner[h] >= 0)
-    area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    tri_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = float(tri_area.sum())
+    # each face: its area and centroid, by its point (>= 0) or wall (-1 - w: -x, +x, -y, +y, -z, +z)
+    faces = {}
+    wall_of_plane = [-1, -3, -5, -2, -4, -6]  # box_hs: the lo walls of x, y, z, then the hi walls
+    for h in np.unique(tri_plane):
+        on = tri_plane == h
+        a = float(tri_area[on].sum())
+        if a > 0:
+            key = int(owner[h]) if owner[h] >= 0 else wall_of_plane[int(h)]
+            faces[key] = (a, (tri_area[on, None] * tri[on].mean(1)).sum(0) / a + seed)
     return CellOracle(volume, centroid + seed, float(second.sum()), verts + seed,
-                      np.array(facets, dtype=np.int64), seed, area=area)
+                      np.array(facets, dtype=np.int64), seed, area=area, faces=faces)
 
 
 def voronoi_oracle(points, box, cells: Optional[Sequence[int]] = None):

@@ -6,9 +6,11 @@ on its own from its nearest neighbours, with integrals taken on the fly.
 from ._version import __version__
 from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi  # loads torchvor._C
 
+from .graph import VoronoiGraph, voronoi_graph, voronoi_laplacian
 from .radius import Radius, radius, radius_graph
 
-__all__ = ["KNN", "CellStatus", "Radius", "VoronoiCells", "knn", "knn_graph", "radius", "radius_graph", "voronoi"]
+__all__ = ["KNN", "CellStatus", "Radius", "VoronoiCells", "VoronoiGraph", "knn", "knn_graph", "radius", "radius_graph",
+           "voronoi", "voronoi_graph", "voronoi_laplacian"]
 # Lloyd relaxation layer. Note: the function torchvor.lloyd shadows the module
 # attribute of the same name; import module contents with `from torchvor.lloyd import ...`.
 from .cvt import cvt_energy

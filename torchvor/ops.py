@@ -290,23 +290,33 @@ def voronoi(
         ValueError: bad shapes/values, NaN/Inf, points outside the box, k < 1.
         TypeError: non-floating points or mismatched dtypes.
     """
-    if on_failure not in ("raise", "warn", "flag"):
-        raise ValueError(f"torchvor.voronoi: on_failure must be 'raise', 'warn' or 'flag', got {on_failure!r}")
+    _check_on_failure("voronoi", on_failure)
     _check_tensor(points, "points")
     box_tensor = _box_for_call(points, box, batch)
     cells = VoronoiCells(*torch.ops.torchvor.voronoi_cells.default(points, box_tensor, batch, k, memory_budget))
-    if on_failure != "flag" and not torch.compiler.is_compiling():
-        failed = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
-        if bool(failed.any()):
-            count = int(failed.sum())
-            codes = sorted({CellStatus(int(c)).name for c in cells.status[failed].unique().cpu()})
-            message = f"torchvor.voronoi: {count} cell(s) could not be computed ({', '.join(codes)})"
-            if on_failure == "raise":
-                raise RuntimeError(message)
-            import warnings
-
-            warnings.warn(message, RuntimeWarning, stacklevel=2)
+    _report_failures("voronoi", cells, on_failure)
     return cells
+
+
+def _check_on_failure(caller: str, on_failure: str) -> None:
+    if on_failure not in ("raise", "warn", "flag"):
+        raise ValueError(f"torchvor.{caller}: on_failure must be 'raise', 'warn' or 'flag', got {on_failure!r}")
+
+
+def _report_failures(caller: str, cells: VoronoiCells, on_failure: str) -> None:
+    """Raise or warn (as `on_failure` says) about cells that could not be computed."""
+    if on_failure == "flag" or torch.compiler.is_compiling():
+        return
+    failed = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+    if bool(failed.any()):
+        count = int(failed.sum())
+        codes = sorted({CellStatus(int(c)).name for c in cells.status[failed].unique().cpu()})
+        message = f"torchvor.{caller}: {count} cell(s) could not be computed ({', '.join(codes)})"
+        if on_failure == "raise":
+            raise RuntimeError(message)
+        import warnings
+
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
 def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,

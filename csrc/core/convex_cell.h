@@ -746,9 +746,16 @@ struct ConvexCell {
     return {position, squared_norm(position)};
   }
 
-  // The cell's vertices (sweep_vertex_balls sweeps their balls).
+  // The cell's vertices (sweep_vertex_balls sweeps their balls), their
+  // planes and the planes' count (for_each_face).
   TV_HD int vertex_count() const { return num_triangles; }
   TV_HD Vec3<T> vertex(int t) const { return triangle.position(t); }
+  TV_HD bool vertex_planes(int t, int (&ids)[3]) const {
+    const Corners corners = triangle.corners(t);
+    for (int e = 0; e < 3; ++e) ids[e] = corner(corners, e);
+    return true;
+  }
+  TV_HD int plane_count() const { return num_planes; }
   static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;
   // Whether the bisector of the neighbour at r is among the cell's planes. A
   // second clip by it is not a no-op: its own vertices, rounded, may fall

@@ -108,6 +108,12 @@ struct CooperativeCell {
   // minus the neighbour, exactly (bisector_plane).
   TV_HD int vertex_count() const { return num_triangles; }
   TV_HD Vec3<T> vertex(int t) const { return a.vertex[t].position; }
+  TV_HD bool vertex_planes(int t, int (&ids)[3]) const {
+    for (int e = 0; e < 3; ++e) ids[e] = corner(a.triangle[t], e);
+    return true;
+  }
+  TV_HD int plane_count() const { return num_planes; }
+  TV_HD Plane<T> plane(int q) const { return a.plane[q]; }
   static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;
   TV_HD Vec3<T> bisector_neighbor(int q) const {
     const Vec3<T> normal = a.plane[q].normal;

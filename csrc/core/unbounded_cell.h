@@ -42,6 +42,16 @@ class UnboundedCell {
 
   Lanes group() const { return {}; }
 
+  // ConvexCell's accessors for for_each_face (vertex_planes: false for a free slot).
+  int plane_count() const { return int(planes_.size()); }
+  Plane<DoubleDouble> plane(int q) const { return planes_[q]; }
+  int vertex_count() const { return int(triangles_.size()); }
+  Vec3<DoubleDouble> vertex(int t) const { return triangles_[t].position; }
+  bool vertex_planes(int t, int (&ids)[3]) const {
+    for (int e = 0; e < 3; ++e) ids[e] = triangles_[t].corner[e];
+    return triangles_[t].alive;
+  }
+
   // The box [lo, hi] (relative to the seed) as 6 planes and 8 triangles.
   void init_box(Vec3<DoubleDouble> lo, Vec3<DoubleDouble> hi, DoubleDouble relative_tolerance) {
     tolerance_ = relative_tolerance;

@@ -45,6 +45,35 @@ struct VertexBallGrid {
   int64_t batch;
 };
 
+// The id of the point of the cell's batch element at `r` from the seed, as
+// the cell computed its offset (T(point) - seed, bit for bit), or -1: the
+// point lies in the grid cell of seed + r or, rounded, next to it.
+template <typename io_t, typename T>
+TV_HD int32_t point_at_offset(const VertexBallGrid<io_t>& balls, Vec3<T> seed, Vec3<T> r) {
+  const GridView<io_t>& grid = balls.grid;
+  const int64_t b = balls.batch;
+  const io_t h = grid.cell_size[b];
+  const Vec3<T> at = seed + r;
+  const T position[3] = {at.x, at.y, at.z};
+  int32_t dim[3], cell[3];
+  for (int a = 0; a < 3; ++a) {
+    dim[a] = grid.dims[3 * b + a];
+    cell[a] = grid_coordinate(io_t(position[a]), grid.origin[3 * b + a], h, dim[a]);
+  }
+  for (int32_t z = max_of(cell[2] - 1, 0); z <= min_of(cell[2] + 1, dim[2] - 1); ++z) {
+    for (int32_t y = max_of(cell[1] - 1, 0); y <= min_of(cell[1] + 1, dim[1] - 1); ++y) {
+      const int32_t row = grid.cell_offset[b] + (z * dim[1] + y) * dim[0];
+      const int32_t end = grid.cell_start[row + min_of(cell[0] + 1, dim[0] - 1) + 1];
+      for (int32_t s = grid.cell_start[row + max_of(cell[0] - 1, 0)]; s < end; ++s) {
+        const Vec3<T> offset = {T(grid.sorted_points[3 * s]) - seed.x, T(grid.sorted_points[3 * s + 1]) - seed.y,
+                                T(grid.sorted_points[3 * s + 2]) - seed.z};
+        if (offset.x == r.x && offset.y == r.y && offset.z == r.z) return grid.original_index(s);
+      }
+    }
+  }
+  return -1;
+}
+
 // The kNN ranked a cell's list in the input's precision: a point a rounding
 // away from the last listed one (at listed_dist2) may be missing from it.
 // Points from this squared distance on are so taken as possibly unlisted.

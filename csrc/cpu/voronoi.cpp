@@ -1,6 +1,7 @@
 #include <torch/library.h>
 
 #include "../ops/voronoi.h"
+#include "../ops/voronoi_graph.h"
 #include "clip_on_host.h"
 #include "exec.h"
 
@@ -17,18 +18,25 @@ namespace cpu {
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
-  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, false, {}).cells;
+  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, false, {}, nullptr).cells;
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_grid_order_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
-  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true, {});
+  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true, {}, nullptr);
   return std::tuple_cat(out.cells, std::make_tuple(out.order));
+}
+
+ops::GraphOutputs voronoi_graph_cpu(const at::Tensor& points, const at::Tensor& box,
+                                   const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                                   int64_t memory_budget) {
+  return ops::voronoi_graph_forward<CpuExec>(points, box, batch, k, memory_budget);
 }
 
 TORCH_LIBRARY_IMPL(torchvor, CPU, m) {
   m.impl("voronoi_cells", &voronoi_cells_cpu);
+  m.impl("voronoi_graph", &voronoi_graph_cpu);
   m.impl("voronoi_cells_grid_order", &voronoi_cells_grid_order_cpu);
 }
 

@@ -3,6 +3,7 @@
 
 #include "../cpu/clip_on_host.h"
 #include "../ops/voronoi.h"
+#include "../ops/voronoi_graph.h"
 #include "clip_tiers.cuh"
 #include "exec.cuh"
 
@@ -24,7 +25,7 @@ ops::VoronoiOutputs voronoi_forward_cuda(const at::Tensor& points, const at::Ten
   // device check with a clear message instead of a guard error.
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order, {});
+  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order, {}, nullptr);
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(
@@ -40,8 +41,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return std::tuple_cat(out.cells, std::make_tuple(out.order));
 }
 
+ops::GraphOutputs voronoi_graph_cuda(const at::Tensor& points, const at::Tensor& box,
+                                    const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                                    int64_t memory_budget) {
+  c10::cuda::OptionalCUDAGuard guard;
+  if (points.is_cuda()) guard.set_device(points.device());
+  return ops::voronoi_graph_forward<CudaExec>(points, box, batch, k, memory_budget);
+}
+
 TORCH_LIBRARY_IMPL(torchvor, CUDA, m) {
   m.impl("voronoi_cells", &voronoi_cells_cuda);
+  m.impl("voronoi_graph", &voronoi_graph_cuda);
   m.impl("voronoi_cells_grid_order", &voronoi_cells_grid_order_cuda);
 }
 

@@ -6,6 +6,8 @@
 
 #include <algorithm>
 #include <cstddef>
+#include <cstring>
+#include <type_traits>
 #include <functional>
 #include <tuple>
 
@@ -25,6 +27,47 @@ struct alignas(16) CellRecord {
   io_t second_moment;
   int32_t num_neighbors;
   int8_t status;
+  uint16_t num_faces;  // voronoi_graph: the cell's neighbour faces (for_each_face); 0 otherwise
+};
+
+// Where voronoi_graph's passes write a computed cell's faces
+// (ClipFunctor::emit_faces), on the device that runs them. The record index
+// (a position, or the step in a host pass) picks the cell's offset and walls.
+template <typename io_t>
+struct FaceOutputs {
+  const int64_t* offset;  // by record: the cell's first face; nullptr: count the faces only (num_faces)
+  int32_t* neighbor;      // (E,) the position of the point across each face
+  io_t* area;             // (E,)
+  io_t* centroid;         // (E, 3)
+  io_t* wall_area;        // by record, 6 each: -x, +x, -y, +y, -z, +z (zero where none)
+};
+
+// voronoi_graph's faces as tensors (FaceOutputs): by position on the
+// points' device, or by step in a host pass (HostFaces).
+struct FaceTensors {
+  at::Tensor count;      // (N,) int32: the count pass's num_faces (undefined in the count pass)
+  at::Tensor offset;     // (N,) int64: the cell's first face (undefined in the count pass)
+  at::Tensor neighbor;   // (E,) int32
+  at::Tensor area;       // (E,)
+  at::Tensor centroid;   // (E, 3)
+  at::Tensor wall_area;  // (N, 6)
+
+  // The pointers as a FaceOutputs in bytes on `device`, for the passes' functors.
+  template <typename io_t>
+  at::Tensor outputs_on(const at::Device& device) const {
+    const auto pointer = [](const at::Tensor& t, auto* type) -> decltype(type) {
+      using V = std::remove_pointer_t<decltype(type)>;
+      return t.defined() && t.numel() > 0 ? t.data_ptr<V>() : nullptr;
+    };
+    const FaceOutputs<io_t> view{offset.defined() ? offset.data_ptr<int64_t>() : nullptr,
+                                 pointer(neighbor, static_cast<int32_t*>(nullptr)),
+                                 pointer(area, static_cast<io_t*>(nullptr)),
+                                 pointer(centroid, static_cast<io_t*>(nullptr)),
+                                 pointer(wall_area, static_cast<io_t*>(nullptr))};
+    at::Tensor bytes = at::empty({int64_t(sizeof(view))}, at::TensorOptions().dtype(at::kByte));
+    std::memcpy(bytes.data_ptr<uint8_t>(), &view, sizeof(view));
+    return bytes.to(device);
+  }
 };
 
 // The outputs by grid position (the numbering the passes work in): one
@@ -37,15 +80,72 @@ struct PositionOutputs {
   at::Tensor status;           // (N,) int8, the records' statuses again
   at::Tensor row_of_position;  // (N,) int32
   at::Tensor position_of_row;  // (N,) int32, its inverse: the first pass's status read computes it
+  // voronoi_graph: where the passes write faces (FaceTensors::outputs_on), or undefined.
+  at::Tensor faces;
+  const FaceTensors* face_tensors = nullptr;  // the same as tensors
 
   template <typename io_t>
   CellRecord<io_t>* data() const {
     return reinterpret_cast<CellRecord<io_t>*>(records.data_ptr<uint8_t>());
   }
+  template <typename io_t>
+  const FaceOutputs<io_t>* face_outputs() const {
+    return faces.defined() ? reinterpret_cast<const FaceOutputs<io_t>*>(faces.data_ptr<uint8_t>()) : nullptr;
+  }
   // (N,) int32 view of the records' neighbour counts.
   template <typename io_t>
   at::Tensor num_neighbors() const {
     return records.view(at::kInt).select(1, offsetof(CellRecord<io_t>, num_neighbors) / sizeof(int32_t));
+  }
+};
+
+// (N,) int32 copy of the records' face counts (voronoi_graph's count pass).
+template <typename io_t>
+at::Tensor face_counts(const at::Tensor& records) {
+  const at::Tensor words = records.view(at::kShort).select(1, offsetof(CellRecord<io_t>, num_faces) / sizeof(int16_t));
+  return words.to(at::kInt).bitwise_and(0xffff);
+}
+
+// A host pass's faces (clip_chunk_on_host, finish_giant_cells): written on
+// the CPU step by step for `cells` (positions), then copied into the
+// positions' ranges of the device's faces (copy_back). In the count pass
+// only the records carry the counts.
+struct HostFaces {
+  FaceTensors part;   // by step, on the CPU
+  at::Tensor bytes;   // part.outputs_on(CPU)
+  at::Tensor global;  // (M,) int64: each face's index in the device's arrays
+
+  template <typename io_t>
+  static HostFaces make(const FaceTensors& device, const at::Tensor& cells) {
+    HostFaces host;
+    const at::TensorOptions cpu = at::TensorOptions().device(at::kCPU);
+    if (device.offset.defined()) {
+      const at::Tensor rows = cells.to(at::kLong);
+      const at::Tensor counts = device.count.index_select(0, rows.to(device.count.device())).to(at::kCPU).to(at::kLong);
+      const at::Tensor ends = counts.cumsum(0);
+      host.part.offset = ends - counts;
+      const int64_t m = counts.numel() > 0 ? ends[-1].item<int64_t>() : 0;
+      const at::ScalarType dtype = c10::CppTypeToScalarType<io_t>::value;
+      host.part.neighbor = at::empty({m}, cpu.dtype(at::kInt));
+      host.part.area = at::empty({m}, cpu.dtype(dtype));
+      host.part.centroid = at::empty({m, 3}, cpu.dtype(dtype));
+      host.part.wall_area = at::zeros({cells.size(0), 6}, cpu.dtype(dtype));
+      const at::Tensor first = device.offset.index_select(0, rows.to(device.offset.device())).to(at::kCPU);
+      host.global = at::repeat_interleave(first - host.part.offset, counts) + at::arange(m, cpu.dtype(at::kLong));
+    }
+    host.bytes = host.part.outputs_on<io_t>(at::kCPU);
+    return host;
+  }
+
+  void copy_back(const FaceTensors& device, const at::Tensor& cells) const {
+    if (!device.offset.defined()) return;
+    const at::Device to = device.wall_area.device();
+    device.wall_area.index_copy_(0, cells.to(at::kLong).to(to), part.wall_area.to(to));
+    if (global.numel() == 0) return;
+    const at::Tensor at_faces = global.to(to);
+    device.neighbor.index_copy_(0, at_faces, part.neighbor.to(to));
+    device.area.index_copy_(0, at_faces, part.area.to(to));
+    device.centroid.index_copy_(0, at_faces, part.centroid.to(to));
   }
 };
 
@@ -170,6 +270,8 @@ struct VoronoiOutputs {
   CallerOutputs cells;
   at::Tensor order;          // undefined unless grid_order
   int64_t first_pass_k = 0;  // the caller's k or the pilot's, capped by the largest cloud; 0: no pass ran
+  at::Tensor face_count;       // voronoi_graph: (N,) int32 by position (num_faces)
+  at::Tensor row_of_position;  // voronoi_graph: (N,) int32
 };
 
 // Work that a call launches on its outputs before the op returns

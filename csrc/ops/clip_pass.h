@@ -9,6 +9,7 @@
 #include <memory>
 #include <type_traits>
 
+#include "../core/cell_faces.h"
 #include "../core/voronoi_cell.h"
 #include "cell_records.h"
 #include "grid.h"
@@ -76,6 +77,7 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
   int8_t* status;              // (N,) by position: the records' statuses again
+  const FaceOutputs<io_t>* faces;  // voronoi_graph's faces (on the device that runs the pass), or nullptr
 
   // One thread computes cell t (the host's largest tiers: on the heap).
   TV_HD void operator()(int64_t t) const {
@@ -83,11 +85,13 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
     if constexpr (on_heap(MAX_PLANES)) {
 #if !defined(__CUDA_ARCH__)
       const std::unique_ptr<Cell> cell(new Cell);
-      write(t, compute(*cell, t));
+      const core::CellIntegrals<T> out = compute(*cell, t);
+      write(t, out, faces ? emit_faces(*cell, t, out) : 0);
 #endif
     } else {
       Cell cell;
-      write(t, compute(cell, t));
+      const core::CellIntegrals<T> out = compute(cell, t);
+      write(t, out, faces ? emit_faces(cell, t, out) : 0);
     }
   }
 
@@ -96,7 +100,8 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   TV_HD void operator()(int64_t t, Lanes lanes, Arrays& arrays) const {
     core::CooperativeCell<T, MAX_PLANES, kMaxTriangles, Lanes> cell(arrays, lanes);
     const core::CellIntegrals<T> out = compute(cell, t);
-    if (lanes.index() == 0) write(t, out);
+    const int num_faces = faces ? emit_faces(cell, t, out) : 0;
+    if (lanes.index() == 0) write(t, out, num_faces);
   }
 
   template <typename Cell>
@@ -114,13 +119,65 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
     }
   }
 
-  TV_HD void write(int64_t t, const core::CellIntegrals<T>& out) const {
+  TV_HD void write(int64_t t, const core::CellIntegrals<T>& out, int num_faces) const {
     const int64_t i = rows_by_step ? t : cells[t];
     records[i] = {static_cast<io_t>(out.volume),
                   {static_cast<io_t>(out.centroid.x), static_cast<io_t>(out.centroid.y),
                    static_cast<io_t>(out.centroid.z)},
-                  static_cast<io_t>(out.second_moment), out.neighbors, out.status};
+                  static_cast<io_t>(out.second_moment), out.neighbors, out.status, static_cast<uint16_t>(num_faces)};
     status[i] = out.status;
+  }
+
+  // The faces of computed cell t (core::for_each_face): counted, and with
+  // offsets written (FaceOutputs). A bisector's point is found by its offset
+  // from the seed, in the cell's list or (a cell finished on the grid) the
+  // grid. Returns the neighbour faces' count.
+  template <typename Cell>
+  TV_HD int emit_faces(const Cell& cell, int64_t t, const core::CellIntegrals<T>& out) const {
+    if (out.status != core::kSuccess) return 0;
+    const int64_t i = rows_by_step ? t : cells[t];
+    const int32_t cell_id = cells[t];
+    const int64_t b = batch ? batch[cell_id] : 0;
+    const core::Vec3<T> seed = {T(points[3 * cell_id]), T(points[3 * cell_id + 1]), T(points[3 * cell_id + 2])};
+    const io_t* corners = box + 6 * b;
+    const core::Vec3<T> lo = core::Vec3<T>{T(corners[0]), T(corners[1]), T(corners[2])} - seed;
+    const core::Vec3<T> hi = core::Vec3<T>{T(corners[3]), T(corners[4]), T(corners[5])} - seed;
+    const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
+    const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
+    const auto target_of = [&](int, const core::Plane<T>& p) -> int32_t {
+      const int wall = core::wall_of(p, lo, hi);
+      if (wall >= 0) return core::wall_target(wall);
+      const core::Vec3<T> r = {-p.normal.x, -p.normal.y, -p.normal.z};  // bisector_plane's normal
+      for (int32_t n = 0; n < k; ++n) {
+        const int32_t j = row[n * stride];
+        if (j < 0) break;
+        if (T(points[3 * j]) - seed.x == r.x && T(points[3 * j + 1]) - seed.y == r.y &&
+            T(points[3 * j + 2]) - seed.z == r.z) {
+          return j;
+        }
+      }
+      if constexpr (kVertexBalls) {
+        const int32_t j = core::point_at_offset(core::VertexBallGrid<io_t>{this->grid, b}, seed, r);
+        if (j >= 0) return j;
+      }
+      return core::kNoFace;
+    };
+    const FaceOutputs<io_t> to = *faces;
+    const auto emit = [&](int slot, int32_t target, const core::Face<T>& face) {
+      if (to.offset == nullptr) return;  // the count pass
+      if (slot < 0) {
+        to.wall_area[6 * i + core::wall_of_target(target)] = static_cast<io_t>(face.area);
+        return;
+      }
+      const int64_t e = to.offset[i] + slot;
+      to.neighbor[e] = target;
+      to.area[e] = static_cast<io_t>(face.area);
+      const core::Vec3<T> centroid = seed + face.centroid;
+      to.centroid[3 * e] = static_cast<io_t>(centroid.x);
+      to.centroid[3 * e + 1] = static_cast<io_t>(centroid.y);
+      to.centroid[3 * e + 2] = static_cast<io_t>(centroid.z);
+    };
+    return core::for_each_face(cell, target_of, emit);
   }
 };
 static_assert(sizeof(ClipFunctor<float, float, 32>) <= 128 && sizeof(ClipFunctor<double, double, 32>) <= 128,
@@ -163,7 +220,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
         static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
         T(core::ClipTolerance<T>::value), options.tetrahedron_start,
         rows_by_step,                   out.data<io_t>(),
-        out.status.data_ptr<int8_t>()};
+        out.status.data_ptr<int8_t>(),  out.face_outputs<io_t>()};
     if constexpr (kVertexBalls) clip.grid = vertex_balls->view<io_t>();
     if constexpr (kUpToDeviceCount) {
       return core::up_to_device_count(clip, live);
@@ -259,6 +316,12 @@ void clip_chunk_on_host(const at::Tensor& points, const at::Tensor& box, const c
   PositionOutputs part;
   part.records = empty_records<io_t>(m, points.options().device(at::kCPU));
   part.status = at::empty({m}, points.options().device(at::kCPU).dtype(at::kChar));
+  HostFaces host_faces;
+  if (out.face_tensors != nullptr) {
+    host_faces = HostFaces::make<io_t>(*out.face_tensors, cells);
+    part.faces = host_faces.bytes;
+    part.face_tensors = &host_faces.part;
+  }
   const bool double_double = pass.precision == Precision::kDoubleDouble;
   const auto clip = [&](auto scalar, auto planes, auto finish_by_vertex_balls) {
     using T = typename decltype(scalar)::type;
@@ -294,6 +357,7 @@ void clip_chunk_on_host(const at::Tensor& points, const at::Tensor& box, const c
   const at::Tensor rows = cells.to(at::kLong);
   out.records.index_copy_(0, rows, part.records.to(out.records.device()));
   out.status.index_copy_(0, rows, part.status.to(out.status.device()));
+  if (out.face_tensors != nullptr) host_faces.copy_back(*out.face_tensors, cells);
 }
 
 // One pass over `cells` (int32 point ids), in chunks of bounded memory.

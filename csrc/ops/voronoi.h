@@ -37,11 +37,15 @@ struct Prepared {
 
 // The passes of voronoi_forward on checked inputs; `bounds` is point_bounds()
 // of the points, already read.
+// With `faces` (voronoi_graph), the passes after the pilot also write the
+// cells' faces there (FaceTensors), and the outputs carry the face counts
+// and the grid order.
 template <typename Exec, typename io_t>
 VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
                               const Prepared& prepared, c10::optional<int64_t> k_in, int64_t memory_budget,
-                              bool grid_order, const LaunchOnOutputs& on_outputs, const Options& options) {
+                              bool grid_order, const LaunchOnOutputs& on_outputs, const Options& options,
+                              const FaceTensors* faces = nullptr) {
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);
   PositionOutputs out = poisoned_outputs<io_t>(prepared.status, points.options());
@@ -49,6 +53,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   const auto finished = [&] {
     VoronoiOutputs outputs = finish_outputs<Exec, io_t>(out, points.options(), grid_order);
     outputs.first_pass_k = first_pass_k;
+    if (faces != nullptr) {
+      outputs.face_count = face_counts<io_t>(out.records);
+      outputs.row_of_position = n > 0 ? out.row_of_position : at::empty({0}, points.options().dtype(at::kInt));
+    }
     if (on_outputs) on_outputs(outputs);
     return outputs;
   };
@@ -123,6 +131,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   } else if (Exec::cells_need_spread(n, std::min(k, largest_cloud))) {
     // The caller's k leaves the backend's choice of cells to the spread.
     neighbor_spread = run_pilot<Exec, io_t>(positions, largest_cloud, options.pilot_quantile, run, out).neighbor_spread;
+  }
+  if (faces != nullptr) {  // not the pilot's cells: the main pass recomputes them in the final grid
+    out.face_tensors = faces;
+    out.faces = faces->outputs_on<io_t>(points.device());
   }
   // The retry loop's passes (the tests may inject a fault after the first).
   auto run_round = with_test_faults(options.testing, out, run);
@@ -220,10 +232,36 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
 // `on_outputs` (torchvor::lloyd_step) is launched on the outputs before the
 // call returns (LaunchOnOutputs). Each backend instantiates it once
 // (voronoi.cpp, voronoi.cu), for its voronoi ops and its lloyd_step.
+// voronoi_graph's faces, by position (voronoi_forward with `graph`).
+struct GraphFaces {
+  FaceTensors faces;           // FaceTensors of the fill pass: offsets in the caller's row order
+  at::Tensor row_of_position;  // (N,) int32
+};
+
+// Where each position's faces go: the caller's rows in order, each its
+// count's share (counts by position from the count pass).
+template <typename Exec>
+FaceTensors face_layout(const at::Tensor& count, const at::Tensor& row_of_position, const at::TensorOptions& options) {
+  const int64_t n = count.size(0);
+  FaceTensors faces;
+  faces.count = count;
+  const at::Tensor rows = row_of_position.to(at::kLong);
+  const at::Tensor count_by_row = at::zeros({n}, count.options().dtype(at::kLong)).index_copy_(0, rows, count.to(at::kLong));
+  const at::Tensor ends = count_by_row.cumsum(0);
+  faces.offset = (ends - count_by_row).index_select(0, rows);
+  const int64_t edges = n > 0 ? ends[-1].item<int64_t>() : 0;
+  faces.neighbor = Exec::empty({edges}, options.dtype(at::kInt));
+  faces.area = Exec::empty({edges}, options);
+  faces.centroid = Exec::empty({edges, 3}, options);
+  faces.wall_area = at::zeros({n, 6}, options);
+  return faces;
+}
+
 template <typename Exec>
 VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
                                const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
-                               int64_t memory_budget, bool grid_order, const LaunchOnOutputs& on_outputs) {
+                               int64_t memory_budget, bool grid_order, const LaunchOnOutputs& on_outputs,
+                               GraphFaces* graph) {
   const int64_t clouds = check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
   const Options options = Options::from_environment();
   // One box for several clouds: each cloud gets its copy.
@@ -252,8 +290,23 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   check_voronoi_values(bounds, read.data() + values.conditions().size(), num_boxes);
   VoronoiOutputs result;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
-    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, grid_order,
-                                            on_outputs, options);
+    if (graph == nullptr) {
+      result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, grid_order,
+                                              on_outputs, options);
+      return;
+    }
+    // voronoi_graph: the passes twice, the same cells each time (no result
+    // depends on the order of a pass): the first counts each cell's faces,
+    // the second writes them where the counts say.
+    const FaceTensors counting;
+    const VoronoiOutputs counted = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in,
+                                                                  memory_budget, false, {}, options, &counting);
+    graph->faces = face_layout<Exec>(counted.face_count, counted.row_of_position, points.options());
+    const Prepared again{Exec::iota(points.size(0), points.options()),
+                         not_computed_statuses(points.size(0), points.options())};
+    result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, again, k_in, memory_budget, false, {},
+                                            options, &graph->faces);
+    graph->row_of_position = result.row_of_position;
   });
   return result;
 }
@@ -269,4 +322,4 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   EXTERN template torchvor::ops::VoronoiOutputs torchvor::ops::voronoi_forward<Exec>(                          \
       const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,                \
       c10::optional<int64_t> k, int64_t memory_budget, bool grid_order,                                       \
-      const torchvor::ops::LaunchOnOutputs& on_outputs)
+      const torchvor::ops::LaunchOnOutputs& on_outputs, torchvor::ops::GraphFaces* graph)

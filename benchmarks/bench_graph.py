@@ -1,0 +1,44 @@
+"""The Voronoi graph against the cells alone: torchvor.voronoi_graph and voronoi on
+the same points (the issue's target: the graph within 2x of the cells).
+
+    python benchmarks/bench_graph.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white]
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import common  # noqa: E402
+import torchvor  # noqa: E402
+
+UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+
+
+def main():
+    parser = common.base_parser(__doc__.split("\n\n")[0])
+    parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
+    args = parser.parse_args()
+    device, dtype = common.setup(args)
+    sizes = args.sizes or [100_000, 1_000_000]
+    notes = [f"points in the unit cube, {args.dtype}, default k (the pilot's); median of {args.repeats} runs "
+             f"after {args.warmup} warm-up run(s)."]
+    rows = []
+    for kind in args.kinds.split(","):
+        for n in sizes:
+            points, _ = common.make_points(kind, n, seed=args.seed, dtype=dtype, device=device,
+                                           cache_dir=args.cache_dir)
+            n = points.shape[0]
+            cells = common.time_fn(lambda: torchvor.voronoi(points, UNIT), device, args.warmup, args.repeats)
+            graph = common.time_fn(lambda: torchvor.voronoi_graph(points, UNIT), device, args.warmup, args.repeats)
+            edges = torchvor.voronoi_graph(points, UNIT).edge_index.shape[1]
+            common.log(f"{kind} n={n}: voronoi {common.fmt_s(cells)}, voronoi_graph {common.fmt_s(graph)}")
+            rows.append([kind, common.npoints_label(n), f"{edges / n:.2f}", common.fmt_s(cells), common.fmt_s(graph),
+                         common.fmt_ratio(graph / cells)])
+            points = None
+    common.print_results("Voronoi graph", ["points", "n", "edges a point", "voronoi s", "voronoi_graph s",
+                                           "graph / cells"], rows, notes)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,137 @@
+// The faces of a computed cell: each plane's area and centroid, from the
+// cell's vertices alone (no walk around the face), for voronoi_graph.
+//
+// A vertex v where planes a, b, c meet (a triangle) gives each of its three
+// planes two signed triangles, as CellMoments' tetrahedra without the seed:
+// for plane e, (apex, a point of the edge line of e and the next plane, v)
+// counted +1 and (apex, a point of the edge line of the previous plane and
+// e, v) counted -1, the apex a vertex of the face. Over all the vertices on
+// a plane they sum to its face, whatever the face's shape.
+#pragma once
+
+#include <cstdint>
+
+#include "convex_cell.h"
+#include "double_double.h"
+
+namespace torchvor {
+namespace core {
+
+// A face whose area is below this fraction of the squared distance of its
+// farthest vertex from the seed is rounding noise on a face that exact
+// arithmetic makes an edge or a vertex (four or more cospherical points),
+// not a face.
+template <typename T> struct FaceAreaFloor;
+template <> struct FaceAreaFloor<float> { static constexpr double value = 1e-10; };
+template <> struct FaceAreaFloor<double> { static constexpr double value = 1e-20; };
+template <> struct FaceAreaFloor<DoubleDouble> { static constexpr double value = 1e-30; };
+
+template <typename T>
+struct Face {
+  T area;
+  Vec3<T> centroid;  // relative to the seed
+};
+
+// What a face's plane is to the caller (for_each_face's target_of): a
+// neighbour's id (>= 0), a wall (wall_target), or no face (kNoFace: the
+// plane was not recognised).
+constexpr int32_t kNoFace = INT32_MIN;
+TV_HD constexpr int32_t wall_target(int wall) { return -1 - wall; }
+TV_HD constexpr int wall_of_target(int32_t target) { return -1 - target; }
+
+// The box wall (0-5: -x, +x, -y, +y, -z, +z, as box_plane) that plane `p`
+// is, or -1 for a bisector. Bit for bit: the cells build their box planes
+// with box_plane, and no bisector of points inside the box is a wall.
+template <typename T>
+TV_HD int wall_of(const Plane<T>& p, Vec3<T> lo, Vec3<T> hi) {
+  for (int q = 0; q < kBoxPlanes; ++q) {
+    const Plane<T> wall = box_plane(q, lo, hi);
+    if (p.normal.x == wall.normal.x && p.normal.y == wall.normal.y && p.normal.z == wall.normal.z &&
+        p.offset == wall.offset) {
+      return q;
+    }
+  }
+  return -1;
+}
+
+TV_HD float inverse_length(float length2) { return rsqrt_of(length2); }
+TV_HD double inverse_length(double length2) { return rsqrt_of(length2); }
+TV_HD DoubleDouble inverse_length(DoubleDouble length2) {
+  return DoubleDouble(rsqrt_of(static_cast<double>(length2)));
+}
+
+// The face of plane q of `cell`, if some vertex lies on it and its area is
+// above the floor (FaceAreaFloor). `Cell` gives plane_count(), plane(q),
+// vertex_count(), vertex(t) and vertex_planes(t, ids) (false: a free slot).
+template <typename Cell, typename T = typename Cell::Scalar>
+TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
+  Plane<T> p;       // loaded at the face's first vertex: a plane no vertex names may be unwritten
+  Vec3<T> apex;     // the face's first vertex: the triangles' common corner
+  Vec3<T> outward;  // planes keep the seed's side
+  T twice_area = T(0);  // along `outward`: |normal| times twice the area
+  Vec3<T> moment = {T(0), T(0), T(0)};  // the same times 3 x the triangles' centroids, relative to the apex
+  T reach2 = T(0);      // the largest |v|^2 on the face
+  bool on_face = false;
+  const int vertices = cell.vertex_count();
+  for (int t = 0; t < vertices; ++t) {
+    int ids[3];
+    if (!cell.vertex_planes(t, ids)) continue;
+    const int e = ids[0] == q ? 0 : (ids[1] == q ? 1 : (ids[2] == q ? 2 : -1));
+    if (e < 0) continue;
+    const Vec3<T> v = cell.vertex(t);
+    if (!on_face) {
+      p = cell.plane(q);
+      apex = v;
+      outward = {-p.normal.x, -p.normal.y, -p.normal.z};
+      on_face = true;
+    }
+    reach2 = max_of(reach2, dot(v, v));
+    const Vec3<T> to_v = v - apex;
+    // The apex's foot on each edge line through v, relative to the apex: the
+    // edge's other vertex computes the same point up to rounding, so the two
+    // triangles make (apex, edge), and all of them stay near the face.
+    const auto foot_on_edge = [&](const Plane<T>& other) {
+      const Vec3<T> direction = cross(p.normal, other.normal);
+      return to_v - (dot(to_v, direction) / dot(direction, direction)) * direction;
+    };
+    const Vec3<T> next_foot = foot_on_edge(cell.plane(ids[(e + 1) % 3]));
+    const Vec3<T> previous_foot = foot_on_edge(cell.plane(ids[(e + 2) % 3]));
+    const T a = dot(outward, cross(next_foot, to_v));
+    const T b = dot(outward, cross(previous_foot, to_v));
+    twice_area += a - b;
+    moment = moment + a * (next_foot + to_v) - b * (previous_foot + to_v);
+  }
+  if (!on_face) return false;
+  face.area = T(0.5) * twice_area * inverse_length(dot(p.normal, p.normal));
+  if (!(face.area > T(FaceAreaFloor<T>::value) * reach2)) return false;  // NaN too
+  face.centroid = apex + (T(1) / (T(3) * twice_area)) * moment;
+  return true;
+}
+
+// The faces of a computed cell, its planes split over its lanes (plane q on
+// lane q % lanes). target_of(q, plane) says what each face is (a neighbour,
+// a wall, or kNoFace); emit(slot, target, face) is called for each, `slot`
+// the face's rank among the cell's neighbour faces (in plane order; -1 for a
+// wall). Returns the number of neighbour faces, in every lane.
+template <typename Cell, typename TargetOf, typename Emit>
+TV_HD int for_each_face(const Cell& cell, TargetOf&& target_of, Emit&& emit) {
+  using T = typename Cell::Scalar;
+  const typename Cell::Lanes lanes = cell.group();
+  constexpr int kLanes = Cell::Lanes::kCount;
+  const int planes = cell.plane_count();
+  int count = 0;
+  for (int base = 0; base < planes; base += kLanes) {
+    const int q = base + lanes.index();
+    Face<T> face;
+    int32_t target = kNoFace;
+    if (q < planes && face_of_plane(cell, q, face)) target = target_of(q, cell.plane(q));
+    const bool neighbor_face = target >= 0;
+    const uint32_t word = lanes.ballot(neighbor_face);
+    if (target != kNoFace) emit(neighbor_face ? count + bit_count(word & lanes.below()) : -1, target, face);
+    count += bit_count(word);
+  }
+  return count;
+}
+
+}  // namespace core
+}  // namespace torchvor
