@@ -1,5 +1,6 @@
 // The clips that no device runs (ops::clip_chunk_on_host: the largest tiers
-// and double-double), compiled once in clip_on_host.cpp for both backends.
+// and double-double), compiled once for both backends, in clip_on_host_float.cpp
+// and clip_on_host_double.cpp.
 #pragma once
 
 #include "../ops/clip_pass.h"

@@ -1,3 +1,0 @@
-#include "clip_on_host.h"
-
-TORCHVOR_CLIPS_ON_HOST();
