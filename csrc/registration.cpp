@@ -27,12 +27,14 @@ TORCH_LIBRARY(torchvor, m) {
   // the neighbour j (row 0) across a face of cell i (row 1), sorted by i
   // then j, each face in both directions; face_area (E,), face_centroid
   // (E, 3), and wall_area (N, 6), the cells' areas on the box walls -x, +x,
-  // -y, +y, -z, +z (ops/voronoi_graph.h).
+  // -y, +y, -z, +z; with moments, face_moments (E, 9), each face's integrals
+  // of u u^T (xx, yy, zz, xy, xz, yz) and |u|^2 u, u = y - face centroid
+  // (else (0, 9)): the gradients' terms (ops/voronoi_graph.h).
   m.def(
       "voronoi_graph(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
-      "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors_needed, Tensor edge_index, Tensor face_area, Tensor face_centroid, "
-      "Tensor wall_area)");
+      "int memory_budget=1073741824, bool moments=False) -> (Tensor volume, Tensor centroid, "
+      "Tensor second_moment, Tensor status, Tensor neighbors_needed, Tensor edge_index, Tensor face_area, "
+      "Tensor face_centroid, Tensor wall_area, Tensor face_moments)");
   // The same cells in the op's grid order (cells of nearby points in nearby
   // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
   // skips the scattered gather to the caller's rows; torchvor.lloyd keeps its

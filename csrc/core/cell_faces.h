@@ -30,6 +30,11 @@ template <typename T>
 struct Face {
   T area;
   Vec3<T> centroid;  // relative to the seed
+  // With kMoments (face_of_plane): about the centroid (u = y - centroid),
+  // the integrals over the face of u u^T (xx, yy, zz, xy, xz, yz) and of
+  // |u|^2 u: the gradients' terms (GRADIENTS.md).
+  T second[6];
+  Vec3<T> third;
 };
 
 // What a face's plane is to the caller (for_each_face's target_of): a
@@ -60,10 +65,28 @@ TV_HD DoubleDouble inverse_length(DoubleDouble length2) {
   return DoubleDouble(rsqrt_of(static_cast<double>(length2)));
 }
 
+// A signed triangle (the apex at the origin, p and q) of weight s (twice
+// its area, times |normal|, signed): s (p p^T + q q^T + (p + q)(p + q)^T)
+// into `second` (xx, yy, zz, xy, xz, yz; 12 x the integral of y y^T over
+// 2 A) and s (3|p|^2 p + 3|q|^2 q + |p|^2 q + |q|^2 p + 2 (p.q)(p + q))
+// into `third` (30 x the integral of |y|^2 y over 2 A).
+template <typename T>
+TV_HD void add_triangle_moments(T s, Vec3<T> p, Vec3<T> q, T (&second)[6], Vec3<T>& third) {
+  const Vec3<T> sum = p + q;
+  second[0] += s * (p.x * p.x + q.x * q.x + sum.x * sum.x);
+  second[1] += s * (p.y * p.y + q.y * q.y + sum.y * sum.y);
+  second[2] += s * (p.z * p.z + q.z * q.z + sum.z * sum.z);
+  second[3] += s * (p.x * p.y + q.x * q.y + sum.x * sum.y);
+  second[4] += s * (p.x * p.z + q.x * q.z + sum.x * sum.z);
+  second[5] += s * (p.y * p.z + q.y * q.z + sum.y * sum.z);
+  const T pp = dot(p, p), qq = dot(q, q), pq = dot(p, q);
+  third = third + s * ((T(3) * pp + qq + T(2) * pq) * p + (T(3) * qq + pp + T(2) * pq) * q);
+}
+
 // The face of plane q of `cell`, if some vertex lies on it and its area is
 // above the floor (FaceAreaFloor). `Cell` gives plane_count(), plane(q),
 // vertex_count(), vertex(t) and vertex_planes(t, ids) (false: a free slot).
-template <typename Cell, typename T = typename Cell::Scalar>
+template <bool kMoments, typename Cell, typename T = typename Cell::Scalar>
 TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
   Plane<T> p;       // loaded at the face's first vertex: a plane no vertex names may be unwritten
   Vec3<T> apex;     // the face's first vertex: the triangles' common corner
@@ -71,6 +94,10 @@ TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
   T twice_area = T(0);  // along `outward`: |normal| times twice the area
   Vec3<T> moment = {T(0), T(0), T(0)};  // the same times 3 x the triangles' centroids, relative to the apex
   T reach2 = T(0);      // the largest |v|^2 on the face
+  // kMoments: the triangles' sums of add_triangle_moments (the integrals of
+  // y y^T and |y|^2 y relative to the apex, up to their scales)
+  T second[6] = {T(0), T(0), T(0), T(0), T(0), T(0)};
+  Vec3<T> third = {T(0), T(0), T(0)};
   bool on_face = false;
   const int vertices = cell.vertex_count();
   for (int t = 0; t < vertices; ++t) {
@@ -100,11 +127,35 @@ TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
     const T b = dot(outward, cross(previous_foot, to_v));
     twice_area += a - b;
     moment = moment + a * (next_foot + to_v) - b * (previous_foot + to_v);
+    if constexpr (kMoments) {
+      add_triangle_moments(a, next_foot, to_v, second, third);
+      add_triangle_moments(-b, previous_foot, to_v, second, third);
+    }
   }
   if (!on_face) return false;
   face.area = T(0.5) * twice_area * inverse_length(dot(p.normal, p.normal));
   if (!(face.area > T(FaceAreaFloor<T>::value) * reach2)) return false;  // NaN too
-  face.centroid = apex + (T(1) / (T(3) * twice_area)) * moment;
+  const Vec3<T> shift = (T(1) / (T(3) * twice_area)) * moment;  // the centroid from the apex
+  face.centroid = apex + shift;
+  if constexpr (kMoments) {
+    // From the apex to the centroid w: u u^T = y y^T - a w w^T;
+    // |u|^2 u = |y|^2 y - tr(Y) w - 2 Y w + 2 a |w|^2 w (Y = y y^T integrated).
+    const T unit = T(0.5) * inverse_length(dot(p.normal, p.normal));  // twice_area x unit = the area
+    T y2[6];
+    for (int m = 0; m < 6; ++m) y2[m] = second[m] * (unit / T(12));
+    const Vec3<T> y3 = (unit / T(30)) * third;
+    const Vec3<T> w = shift;
+    const T a = face.area;
+    face.second[0] = y2[0] - a * w.x * w.x;
+    face.second[1] = y2[1] - a * w.y * w.y;
+    face.second[2] = y2[2] - a * w.z * w.z;
+    face.second[3] = y2[3] - a * w.x * w.y;
+    face.second[4] = y2[4] - a * w.x * w.z;
+    face.second[5] = y2[5] - a * w.y * w.z;
+    const Vec3<T> yw = {y2[0] * w.x + y2[3] * w.y + y2[4] * w.z, y2[3] * w.x + y2[1] * w.y + y2[5] * w.z,
+                        y2[4] * w.x + y2[5] * w.y + y2[2] * w.z};
+    face.third = y3 - (y2[0] + y2[1] + y2[2]) * w - T(2) * yw + (T(2) * a * dot(w, w)) * w;
+  }
   return true;
 }
 
@@ -113,7 +164,7 @@ TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
 // a wall, or kNoFace); emit(slot, target, face) is called for each, `slot`
 // the face's rank among the cell's neighbour faces (in plane order; -1 for a
 // wall). Returns the number of neighbour faces, in every lane.
-template <typename Cell, typename TargetOf, typename Emit>
+template <bool kMoments, typename Cell, typename TargetOf, typename Emit>
 TV_HD int for_each_face(const Cell& cell, TargetOf&& target_of, Emit&& emit) {
   using T = typename Cell::Scalar;
   const typename Cell::Lanes lanes = cell.group();
@@ -124,7 +175,7 @@ TV_HD int for_each_face(const Cell& cell, TargetOf&& target_of, Emit&& emit) {
     const int q = base + lanes.index();
     Face<T> face;
     int32_t target = kNoFace;
-    if (q < planes && face_of_plane(cell, q, face)) target = target_of(q, cell.plane(q));
+    if (q < planes && face_of_plane<kMoments>(cell, q, face)) target = target_of(q, cell.plane(q));
     const bool neighbor_face = target >= 0;
     const uint32_t word = lanes.ballot(neighbor_face);
     if (target != kNoFace) emit(neighbor_face ? count + bit_count(word & lanes.below()) : -1, target, face);

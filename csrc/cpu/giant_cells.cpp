@@ -41,20 +41,9 @@ int emit_faces(const core::UnboundedCell& unbounded, const io_t* points, int32_t
     return core::kNoFace;
   };
   const auto emit = [&](int slot, int32_t target, const core::Face<T>& face) {
-    if (to.offset == nullptr) return;
-    if (slot < 0) {
-      to.wall_area[6 * step + core::wall_of_target(target)] = static_cast<io_t>(face.area);
-      return;
-    }
-    const int64_t e = to.offset[step] + slot;
-    const core::Vec3<T> centroid = seed + face.centroid;
-    to.neighbor[e] = target;
-    to.area[e] = static_cast<io_t>(face.area);
-    to.centroid[3 * e] = static_cast<io_t>(centroid.x);
-    to.centroid[3 * e + 1] = static_cast<io_t>(centroid.y);
-    to.centroid[3 * e + 2] = static_cast<io_t>(centroid.z);
+    store_face(to, step, slot, target, seed, face);
   };
-  return core::for_each_face(unbounded, target_of, emit);
+  return emit_cell_faces(to, unbounded, target_of, emit);
 }
 
 // Cell `cell` (a position) against its cloud's points, nearest first.

@@ -5,7 +5,7 @@
 #include "clip_on_host.h"
 #include "exec.h"
 
-// Compiled in clip_on_host.cpp.
+// Compiled in clip_on_host_float.cpp and clip_on_host_double.cpp.
 TORCHVOR_CLIPS_ON_HOST(extern);
 
 // The one instantiation of this backend's passes, for the voronoi ops below
@@ -30,8 +30,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 ops::GraphOutputs voronoi_graph_cpu(const at::Tensor& points, const at::Tensor& box,
                                    const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                                   int64_t memory_budget) {
-  return ops::voronoi_graph_forward<CpuExec>(points, box, batch, k, memory_budget);
+                                   int64_t memory_budget, bool moments) {
+  return ops::voronoi_graph_forward<CpuExec>(points, box, batch, k, memory_budget, moments);
 }
 
 TORCH_LIBRARY_IMPL(torchvor, CPU, m) {

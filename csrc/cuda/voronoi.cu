@@ -7,7 +7,7 @@
 #include "clip_tiers.cuh"
 #include "exec.cuh"
 
-// Compiled in clip_*.cu and, for the host's clips, cpu/clip_on_host.cpp.
+// Compiled in clip_*.cu and, for the host's clips, cpu/clip_on_host_*.cpp.
 TORCHVOR_CLIP_CHUNK_TIERS(extern);
 TORCHVOR_CLIPS_ON_HOST(extern);
 
@@ -43,10 +43,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 ops::GraphOutputs voronoi_graph_cuda(const at::Tensor& points, const at::Tensor& box,
                                     const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                                    int64_t memory_budget) {
+                                    int64_t memory_budget, bool moments) {
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::voronoi_graph_forward<CudaExec>(points, box, batch, k, memory_budget);
+  return ops::voronoi_graph_forward<CudaExec>(points, box, batch, k, memory_budget, moments);
 }
 
 TORCH_LIBRARY_IMPL(torchvor, CUDA, m) {

@@ -11,6 +11,7 @@
 #include <functional>
 #include <tuple>
 
+#include "../core/cell_faces.h"
 #include "../core/common.h"
 #include "../core/status.h"
 
@@ -40,7 +41,42 @@ struct FaceOutputs {
   io_t* area;             // (E,)
   io_t* centroid;         // (E, 3)
   io_t* wall_area;        // by record, 6 each: -x, +x, -y, +y, -z, +z (zero where none)
+  io_t* moments;          // (E, 9) core::Face's second (6) and third (3) moments, or nullptr: none asked
 };
+
+// One face of a computed cell into `to` (ClipFunctor::emit_faces, the giant
+// cells): record `record`'s face `slot` (-1: a wall, `target` names it), its
+// centroid from the seed's frame.
+template <typename io_t, typename T>
+TV_HD void store_face(const FaceOutputs<io_t>& to, int64_t record, int slot, int32_t target, core::Vec3<T> seed,
+                      const core::Face<T>& face) {
+  if (to.offset == nullptr) return;  // the count pass
+  if (slot < 0) {
+    to.wall_area[6 * record + core::wall_of_target(target)] = static_cast<io_t>(face.area);
+    return;
+  }
+  const int64_t e = to.offset[record] + slot;
+  const core::Vec3<T> centroid = seed + face.centroid;
+  to.neighbor[e] = target;
+  to.area[e] = static_cast<io_t>(face.area);
+  to.centroid[3 * e] = static_cast<io_t>(centroid.x);
+  to.centroid[3 * e + 1] = static_cast<io_t>(centroid.y);
+  to.centroid[3 * e + 2] = static_cast<io_t>(centroid.z);
+  if (to.moments != nullptr) {
+    for (int m = 0; m < 6; ++m) to.moments[9 * e + m] = static_cast<io_t>(face.second[m]);
+    to.moments[9 * e + 6] = static_cast<io_t>(face.third.x);
+    to.moments[9 * e + 7] = static_cast<io_t>(face.third.y);
+    to.moments[9 * e + 8] = static_cast<io_t>(face.third.z);
+  }
+}
+
+// The faces of a cell (core::for_each_face), their moments where `to` asks
+// for them; returns the neighbour faces' count.
+template <typename io_t, typename Cell, typename TargetOf, typename Emit>
+TV_HD int emit_cell_faces(const FaceOutputs<io_t>& to, const Cell& cell, TargetOf&& target_of, Emit&& emit) {
+  if (to.offset != nullptr && to.moments != nullptr) return core::for_each_face<true>(cell, target_of, emit);
+  return core::for_each_face<false>(cell, target_of, emit);
+}
 
 // voronoi_graph's faces as tensors (FaceOutputs): by position on the
 // points' device, or by step in a host pass (HostFaces).
@@ -51,6 +87,7 @@ struct FaceTensors {
   at::Tensor area;       // (E,)
   at::Tensor centroid;   // (E, 3)
   at::Tensor wall_area;  // (N, 6)
+  at::Tensor moments;    // (E, 9), or undefined: none asked
 
   // The pointers as a FaceOutputs in bytes on `device`, for the passes' functors.
   template <typename io_t>
@@ -63,7 +100,8 @@ struct FaceTensors {
                                  pointer(neighbor, static_cast<int32_t*>(nullptr)),
                                  pointer(area, static_cast<io_t*>(nullptr)),
                                  pointer(centroid, static_cast<io_t*>(nullptr)),
-                                 pointer(wall_area, static_cast<io_t*>(nullptr))};
+                                 pointer(wall_area, static_cast<io_t*>(nullptr)),
+                                 pointer(moments, static_cast<io_t*>(nullptr))};
     at::Tensor bytes = at::empty({int64_t(sizeof(view))}, at::TensorOptions().dtype(at::kByte));
     std::memcpy(bytes.data_ptr<uint8_t>(), &view, sizeof(view));
     return bytes.to(device);
@@ -130,6 +168,7 @@ struct HostFaces {
       host.part.area = at::empty({m}, cpu.dtype(dtype));
       host.part.centroid = at::empty({m, 3}, cpu.dtype(dtype));
       host.part.wall_area = at::zeros({cells.size(0), 6}, cpu.dtype(dtype));
+      if (device.moments.defined()) host.part.moments = at::empty({m, 9}, cpu.dtype(dtype));
       const at::Tensor first = device.offset.index_select(0, rows.to(device.offset.device())).to(at::kCPU);
       host.global = at::repeat_interleave(first - host.part.offset, counts) + at::arange(m, cpu.dtype(at::kLong));
     }
@@ -146,6 +185,7 @@ struct HostFaces {
     device.neighbor.index_copy_(0, at_faces, part.neighbor.to(to));
     device.area.index_copy_(0, at_faces, part.area.to(to));
     device.centroid.index_copy_(0, at_faces, part.centroid.to(to));
+    if (device.moments.defined()) device.moments.index_copy_(0, at_faces, part.moments.to(to));
   }
 };
 

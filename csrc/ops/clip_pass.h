@@ -30,6 +30,15 @@ struct VertexBallsGridMember {
 template <typename io_t>
 struct VertexBallsGridMember<io_t, false> {};
 
+// Where voronoi_graph's passes write faces, held only by their functors (the
+// plain passes' kernels stay as they were: no face code, no parameter).
+template <typename io_t, bool kFaces>
+struct FacesMember {
+  const FaceOutputs<io_t>* faces;  // on the device that runs the pass
+};
+template <typename io_t>
+struct FacesMember<io_t, false> {};
+
 // The planes a cell may hold at each tier of recovery. The device runs tiers
 // up to kLastDeviceTier, in kernels; the larger ones run on the host
 // (Exec::HostExec), for the rare cells with hundreds of faces (a point next
@@ -58,9 +67,11 @@ constexpr bool on_heap(int planes) { return planes > 255; }
 // kVertexBalls, a cell whose neighbours run out before the radius of
 // security is finished on the grid (core::finish_by_vertex_balls). With
 // kCompactTriangles, a thread cell keeps its triangles in 12 bytes
-// (core::CompactTriangles: float32, at most 32 planes).
-template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false, bool kCompactTriangles = false>
-struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
+// (core::CompactTriangles: float32, at most 32 planes). With kFaces (one
+// thread a cell), each computed cell's faces go to `faces` (emit_faces).
+template <typename io_t, typename T, int MAX_PLANES, bool kVertexBalls = false, bool kCompactTriangles = false,
+          bool kFaces = false>
+struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t, kFaces> {
   static constexpr int kMaxTriangles = 2 * MAX_PLANES;
   using Arrays = core::CooperativeCellArrays<T, MAX_PLANES, kMaxTriangles>;
 
@@ -77,7 +88,6 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   bool rows_by_step;           // write record t (chunk-local outputs) instead of record cells[t]
   CellRecord<io_t>* records;   // (N,) by position
   int8_t* status;              // (N,) by position: the records' statuses again
-  const FaceOutputs<io_t>* faces;  // voronoi_graph's faces (on the device that runs the pass), or nullptr
 
   // One thread computes cell t (the host's largest tiers: on the heap).
   TV_HD void operator()(int64_t t) const {
@@ -86,12 +96,12 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
 #if !defined(__CUDA_ARCH__)
       const std::unique_ptr<Cell> cell(new Cell);
       const core::CellIntegrals<T> out = compute(*cell, t);
-      write(t, out, faces ? emit_faces(*cell, t, out) : 0);
+      write(t, out, faces_of(*cell, t, out));
 #endif
     } else {
       Cell cell;
       const core::CellIntegrals<T> out = compute(cell, t);
-      write(t, out, faces ? emit_faces(cell, t, out) : 0);
+      write(t, out, faces_of(cell, t, out));
     }
   }
 
@@ -100,8 +110,18 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
   TV_HD void operator()(int64_t t, Lanes lanes, Arrays& arrays) const {
     core::CooperativeCell<T, MAX_PLANES, kMaxTriangles, Lanes> cell(arrays, lanes);
     const core::CellIntegrals<T> out = compute(cell, t);
-    const int num_faces = faces ? emit_faces(cell, t, out) : 0;
+    const int num_faces = faces_of(cell, t, out);
     if (lanes.index() == 0) write(t, out, num_faces);
+  }
+
+  // The cell's neighbour faces' count, written where kFaces asks (0 without).
+  template <typename Cell>
+  TV_HD int faces_of(const Cell& cell, int64_t t, const core::CellIntegrals<T>& out) const {
+    if constexpr (kFaces) {
+      return emit_faces(cell, t, out);
+    } else {
+      return 0;
+    }
   }
 
   template <typename Cell>
@@ -162,22 +182,11 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls> {
       }
       return core::kNoFace;
     };
-    const FaceOutputs<io_t> to = *faces;
+    const FaceOutputs<io_t> to = *this->faces;
     const auto emit = [&](int slot, int32_t target, const core::Face<T>& face) {
-      if (to.offset == nullptr) return;  // the count pass
-      if (slot < 0) {
-        to.wall_area[6 * i + core::wall_of_target(target)] = static_cast<io_t>(face.area);
-        return;
-      }
-      const int64_t e = to.offset[i] + slot;
-      to.neighbor[e] = target;
-      to.area[e] = static_cast<io_t>(face.area);
-      const core::Vec3<T> centroid = seed + face.centroid;
-      to.centroid[3 * e] = static_cast<io_t>(centroid.x);
-      to.centroid[3 * e + 1] = static_cast<io_t>(centroid.y);
-      to.centroid[3 * e + 2] = static_cast<io_t>(centroid.z);
+      store_face(to, i, slot, target, seed, face);
     };
-    return core::for_each_face(cell, target_of, emit);
+    return emit_cell_faces(to, cell, target_of, emit);
   }
 };
 static_assert(sizeof(ClipFunctor<float, float, 32>) <= 128 && sizeof(ClipFunctor<double, double, 32>) <= 128,
@@ -210,9 +219,11 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
                 const Options& options, PositionOutputs& out, const core::DeviceCount& live = {}) {
   static_assert(!kVertexBalls || MAX_PLANES >= kVertexBallPlanes, "vertex-ball passes run at the largest tiers");
   constexpr bool kCompactPossible = std::is_same<T, float>::value && MAX_PLANES <= 32;
-  // The functor with or without compact triangles (std::true_type or std::false_type).
-  const auto functor = [&](auto compact) {
-    ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls, decltype(compact)::value> clip{
+  // The functor with or without compact triangles, with or without faces
+  // (std::true_type or std::false_type).
+  const auto functor = [&](auto compact, auto faces) {
+    ClipFunctor<io_t, T, MAX_PLANES, kVertexBalls, decltype(compact)::value, decltype(faces)::value> clip{
+        {},
         {},
         points.data_ptr<io_t>(),        box.data_ptr<io_t>(),
         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
@@ -220,8 +231,9 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
         static_cast<int32_t>(neighbors.size(1)), column_major, static_cast<int32_t>(cells.size(0)),
         T(core::ClipTolerance<T>::value), options.tetrahedron_start,
         rows_by_step,                   out.data<io_t>(),
-        out.status.data_ptr<int8_t>(),  out.face_outputs<io_t>()};
+        out.status.data_ptr<int8_t>()};
     if constexpr (kVertexBalls) clip.grid = vertex_balls->view<io_t>();
+    if constexpr (decltype(faces)::value) clip.faces = out.face_outputs<io_t>();
     if constexpr (kUpToDeviceCount) {
       return core::up_to_device_count(clip, live);
     } else {
@@ -240,24 +252,36 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   // The host's largest tiers run thread cells only (a warp cell's ids are bytes).
+  // voronoi_graph's passes: thread cells, whose functors write the faces
+  // (no speculative pass runs then).
+  if constexpr (!kUpToDeviceCount) {
+    if (out.faces.defined()) {
+      if constexpr (std::is_same<T, core::DoubleDouble>::value) {
+        Exec::for_each(cells.size(0), functor(std::false_type(), std::true_type()));
+      } else {
+        Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type(), std::true_type()));
+      }
+      return;
+    }
+  }
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
-    Exec::for_each(cells.size(0), functor(std::false_type()));
+    Exec::for_each(cells.size(0), functor(std::false_type(), std::false_type()));
   } else if constexpr (on_heap(MAX_PLANES)) {
-    Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type()));
+    Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type(), std::false_type()));
   } else {
     const c10::optional<double> spread =
         kVertexBalls ? c10::optional<double>(std::numeric_limits<double>::infinity()) : neighbor_spread;
     if (use_cooperative(options.cells, Exec::cooperative_cells(cells.size(0), neighbors.size(1), spread))) {
-      Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(cells.size(0),
-                                                                                          functor(std::false_type()));
+      Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(
+          cells.size(0), functor(std::false_type(), std::false_type()));
     } else {
       if constexpr (kCompactPossible) {
         if (options.compact_triangles) {
-          Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::true_type()));
+          Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::true_type(), std::false_type()));
           return;
         }
       }
-      Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type()));
+      Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::false_type(), std::false_type()));
     }
   }
 }

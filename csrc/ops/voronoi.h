@@ -172,9 +172,11 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     // host reads the words: on the failed cells with more neighbours, if
     // they fit its capacity (core::DeviceCount), its own outcome in words 2
     // and 3 (the same read).
+    // (Not in voronoi_graph's passes: their cells write faces, the speculative kernels do not.)
     const Speculation speculation =
-        attempt == 0 ? speculative_retry(pass, pending.size(0), largest_cloud, memory_budget, options)
-                     : Speculation{};
+        attempt == 0 && faces == nullptr
+            ? speculative_retry(pass, pending.size(0), largest_cloud, memory_budget, options)
+            : Speculation{};
     at::Tensor speculative_failed;
     if (speculation.capacity > 0) {
       const at::Tensor cells = failed_cells.slice(0, 0, speculation.capacity);
@@ -234,6 +236,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
 // (voronoi.cpp, voronoi.cu), for its voronoi ops and its lloyd_step.
 // voronoi_graph's faces, by position (voronoi_forward with `graph`).
 struct GraphFaces {
+  bool moments = false;        // asked: the faces' second and third moments too
   FaceTensors faces;           // FaceTensors of the fill pass: offsets in the caller's row order
   at::Tensor row_of_position;  // (N,) int32
 };
@@ -241,7 +244,8 @@ struct GraphFaces {
 // Where each position's faces go: the caller's rows in order, each its
 // count's share (counts by position from the count pass).
 template <typename Exec>
-FaceTensors face_layout(const at::Tensor& count, const at::Tensor& row_of_position, const at::TensorOptions& options) {
+FaceTensors face_layout(const at::Tensor& count, const at::Tensor& row_of_position, bool moments,
+                        const at::TensorOptions& options) {
   const int64_t n = count.size(0);
   FaceTensors faces;
   faces.count = count;
@@ -254,6 +258,7 @@ FaceTensors face_layout(const at::Tensor& count, const at::Tensor& row_of_positi
   faces.area = Exec::empty({edges}, options);
   faces.centroid = Exec::empty({edges, 3}, options);
   faces.wall_area = at::zeros({n, 6}, options);
+  if (moments) faces.moments = Exec::empty({edges, 9}, options);
   return faces;
 }
 
@@ -301,7 +306,7 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
     const FaceTensors counting;
     const VoronoiOutputs counted = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in,
                                                                   memory_budget, false, {}, options, &counting);
-    graph->faces = face_layout<Exec>(counted.face_count, counted.row_of_position, points.options());
+    graph->faces = face_layout<Exec>(counted.face_count, counted.row_of_position, graph->moments, points.options());
     const Prepared again{Exec::iota(points.size(0), points.options()),
                          not_computed_statuses(points.size(0), points.options())};
     result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, again, k_in, memory_budget, false, {},

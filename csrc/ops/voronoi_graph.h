@@ -6,6 +6,7 @@
 #include <ATen/ATen.h>
 
 #include <tuple>
+#include <vector>
 
 #include "voronoi.h"
 
@@ -13,61 +14,141 @@ namespace torchvor {
 namespace ops {
 
 using GraphOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
-                                at::Tensor, at::Tensor>;
+                                at::Tensor, at::Tensor, at::Tensor>;
+
+// Directed faces: edge j -> i from cell i's passes; per edge `area` (E,)
+// and `values` (E, C), the face's other columns (centroid, moments).
+struct Edges {
+  at::Tensor key;     // (E,) int64: i * N + j
+  at::Tensor area;    // (E,)
+  at::Tensor values;  // (E, C)
+};
+
+// Each cell row r's faces [first[r], first[r] + count[r]): the edges' cell
+// rows, and their neighbours' rows from their positions.
+struct EdgeRowsFunctor {
+  const int64_t* first;
+  const int64_t* count;
+  const int32_t* row_of_position;
+  const int32_t* neighbor;  // (E,) positions
+  int32_t* cell_row;        // (E,)
+  int32_t* neighbor_row;    // (E,)
+
+  TV_HD void operator()(int64_t r) const {
+    for (int64_t e = first[r]; e < first[r] + count[r]; ++e) {
+      cell_row[e] = static_cast<int32_t>(r);
+      neighbor_row[e] = row_of_position[neighbor[e]];
+    }
+  }
+};
+
+// Edge e to its place in its cell's range sorted by neighbour row: its rank
+// there (the rows in a range are distinct), its columns moved along.
+template <typename io_t>
+struct SortEdgesFunctor {
+  const int64_t* first;
+  const int64_t* count;
+  const int32_t* cell_row;
+  const int32_t* neighbor_row;
+  const io_t* values;  // (E, columns): area, centroid, moments
+  int64_t columns;
+  int32_t* sorted_neighbor;
+  io_t* sorted_values;
+
+  TV_HD void operator()(int64_t e) const {
+    const int32_t r = cell_row[e], j = neighbor_row[e];
+    int64_t to = first[r];
+    for (int64_t other = first[r]; other < first[r] + count[r]; ++other) to += neighbor_row[other] < j ? 1 : 0;
+    sorted_neighbor[to] = j;
+    for (int64_t c = 0; c < columns; ++c) sorted_values[to * columns + c] = values[e * columns + c];
+  }
+};
+
+// The reverse of each edge j -> i: i's place in j's sorted range, or -1.
+struct ReverseEdgeFunctor {
+  const int64_t* first;
+  const int64_t* count;
+  const int32_t* cell_row;
+  const int32_t* neighbor;  // sorted within each range
+  int64_t* reverse;
+
+  TV_HD void operator()(int64_t e) const {
+    const int32_t i = cell_row[e], j = neighbor[e];
+    int64_t lo = first[j], hi = first[j] + count[j];  // the first entry >= i in [lo, hi)
+    while (lo < hi) {
+      const int64_t mid = lo + (hi - lo) / 2;
+      if (neighbor[mid] < i) {
+        lo = mid + 1;
+      } else {
+        hi = mid;
+      }
+    }
+    reverse[e] = lo < first[j] + count[j] && neighbor[lo] == i ? lo : -1;
+  }
+};
 
 // The faces as edges j -> i (row 0 the neighbour j, row 1 the cell i),
 // sorted by i then j, every face in both directions. Cells i and j compute
 // their shared face apart: where both found it, each direction gets the
-// mean of their areas and the area-weighted mean of their centroids; a face
-// only one of them found (one near the area floor, core::FaceAreaFloor) is
-// kept in both directions with that cell's values.
-inline std::tuple<at::Tensor, at::Tensor, at::Tensor> symmetric_edges(const at::Tensor& cell, const at::Tensor& neighbor,
-                                                                      const at::Tensor& area, const at::Tensor& centroid,
-                                                                      int64_t n) {
-  // Each cell's faces are one range in row order: sorting by (i, j) orders
-  // them within it.
-  const auto sorted_by_key = [n](const at::Tensor& i, const at::Tensor& j, const at::Tensor& a, const at::Tensor& c) {
-    const at::Tensor key = i * n + j;
-    const at::Tensor order = std::get<1>(key.sort());
-    return std::make_tuple(key.index_select(0, order), a.index_select(0, order), c.index_select(0, order));
-  };
-  auto [key, a, c] = sorted_by_key(cell, neighbor, area, centroid);
-  const int64_t edges = key.numel();
-  if (edges == 0) return {key, a, c};
-  const at::Tensor i = key.div(n, "floor"), j = key.remainder(n);
-  const at::Tensor reverse = j * n + i;
-  const at::Tensor at_reverse = at::searchsorted(key, reverse).clamp_max(edges - 1);
-  const at::Tensor matched = key.index_select(0, at_reverse).eq(reverse);
-  const at::Tensor other_area = at::where(matched, a.index_select(0, at_reverse), at::zeros_like(a));
-  const at::Tensor other_centroid = c.index_select(0, at_reverse);
+// mean of their areas and of their other values (the centroid weighted by
+// area); a face only one of them found (one near the area floor,
+// core::FaceAreaFloor) is kept in both directions with that cell's values.
+// `values` (E, C) holds area, centroid, moments; cell row r's faces are
+// [first[r], first[r] + count[r]).
+template <typename Exec, typename io_t>
+Edges symmetric_edges(const at::Tensor& first, const at::Tensor& count, const at::Tensor& row_of_position,
+                      const at::Tensor& neighbor, const at::Tensor& values, int64_t n) {
+  const int64_t edges = neighbor.numel(), columns = values.size(1);
+  const at::TensorOptions ints = neighbor.options().dtype(at::kInt);
+  const at::Tensor cell_row = Exec::empty({edges}, ints), neighbor_row = Exec::empty({edges}, ints);
+  Exec::for_each(n, EdgeRowsFunctor{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
+                                    row_of_position.data_ptr<int32_t>(), neighbor.data_ptr<int32_t>(),
+                                    cell_row.data_ptr<int32_t>(), neighbor_row.data_ptr<int32_t>()});
+  const at::Tensor sorted_neighbor = Exec::empty({edges}, ints), sorted = Exec::empty({edges, columns}, values.options());
+  Exec::for_each(edges, SortEdgesFunctor<io_t>{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
+                                               cell_row.data_ptr<int32_t>(), neighbor_row.data_ptr<int32_t>(),
+                                               values.data_ptr<io_t>(), columns, sorted_neighbor.data_ptr<int32_t>(),
+                                               sorted.data_ptr<io_t>()});
+  const at::Tensor reverse = Exec::empty({edges}, neighbor.options().dtype(at::kLong));
+  Exec::for_each(edges, ReverseEdgeFunctor{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
+                                           cell_row.data_ptr<int32_t>(), sorted_neighbor.data_ptr<int32_t>(),
+                                           reverse.data_ptr<int64_t>()});
+  const at::Tensor matched = reverse.ge(0);
+  const at::Tensor other = sorted.index_select(0, reverse.clamp_min(0));
+  const at::Tensor a = sorted.select(1, 0), other_area = other.select(1, 0);
   const at::Tensor total = a + other_area;
-  const at::Tensor mean_centroid =
-      (a.unsqueeze(1) * c + other_area.unsqueeze(1) * other_centroid) / total.unsqueeze(1);
-  const at::Tensor both = matched.unsqueeze(1);
-  c = at::where(both, mean_centroid, c);
-  a = at::where(matched, total * 0.5, a);
+  at::Tensor mean = (sorted + other) * 0.5;  // area and moments; the centroid by area:
+  mean.slice(1, 1, 4).copy_((a.unsqueeze(1) * sorted.slice(1, 1, 4) + other_area.unsqueeze(1) * other.slice(1, 1, 4)) /
+                            total.unsqueeze(1));
+  const at::Tensor symmetric = at::where(matched.unsqueeze(1), mean, sorted);
+  const at::Tensor key = cell_row.to(at::kLong) * n + sorted_neighbor.to(at::kLong);
   const at::Tensor lonely = matched.logical_not().nonzero().squeeze(1);
-  if (lonely.numel() > 0) {  // mirror them, then merge
-    auto [merged_key, merged_area, merged_centroid] =
-        sorted_by_key(at::cat({i, j.index_select(0, lonely)}), at::cat({j, i.index_select(0, lonely)}),
-                      at::cat({a, a.index_select(0, lonely)}), at::cat({c, c.index_select(0, lonely)}));
-    return {merged_key, merged_area, merged_centroid};
-  }
-  return {key, a, c};
+  if (lonely.numel() == 0) return {key, symmetric.select(1, 0), symmetric.slice(1, 1)};
+  // Mirror the faces only one cell found, then merge (rare: a full sort).
+  const at::Tensor mirrored = sorted_neighbor.index_select(0, lonely).to(at::kLong) * n +
+                              cell_row.index_select(0, lonely).to(at::kLong);
+  const at::Tensor all_keys = at::cat({key, mirrored});
+  const at::Tensor all_values = at::cat({symmetric, symmetric.index_select(0, lonely)});
+  const at::Tensor order = std::get<1>(all_keys.sort());
+  const at::Tensor merged = all_values.index_select(0, order);
+  return {all_keys.index_select(0, order), merged.select(1, 0), merged.slice(1, 1)};
 }
 
 // The op's outputs: the cells (voronoi_cells'), then edge_index (2, E)
-// int64, area (E,), face centroid (E, 3) and wall_area (N, 6).
+// int64, area (E,), face centroid (E, 3), wall_area (N, 6) and, with
+// `moments`, the faces' moments (E, 9) (core::Face; else (0, 9)).
 template <typename Exec>
 GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& box,
                                    const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                                   int64_t memory_budget) {
+                                   int64_t memory_budget, bool moments) {
   GraphFaces graph;
+  graph.moments = moments;
   const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, false, {}, &graph);
   const int64_t n = points.size(0);
   const at::TensorOptions longs = points.options().dtype(at::kLong);
   const FaceTensors& faces = graph.faces;
-  at::Tensor edge_index = at::empty({2, 0}, longs), area = faces.area, centroid = faces.centroid;
+  at::Tensor edge_index = at::empty({2, 0}, longs), area = at::empty({0}, points.options());
+  at::Tensor centroid = at::empty({0, 3}, points.options()), face_moments = at::empty({0, 9}, points.options());
   at::Tensor wall_area = at::zeros({n, 6}, points.options());
   if (n > 0) {
     const at::Tensor row_of_position = graph.row_of_position.to(at::kLong);
@@ -75,15 +156,23 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
     // The faces lie in the caller's row order (face_layout): cell row r has
     // its count's range.
     const at::Tensor count_by_row = at::zeros({n}, longs).index_copy_(0, row_of_position, faces.count.to(at::kLong));
-    const at::Tensor cell = at::repeat_interleave(count_by_row);
-    const at::Tensor neighbor = row_of_position.index_select(0, faces.neighbor.to(at::kLong));
-    auto [key, symmetric_area, symmetric_centroid] = symmetric_edges(cell, neighbor, faces.area, faces.centroid, n);
-    edge_index = at::stack({key.remainder(n), key.div(n, "floor")});
-    area = symmetric_area;
-    centroid = symmetric_centroid;
+    const at::Tensor first_by_row = count_by_row.cumsum(0) - count_by_row;
+    std::vector<at::Tensor> columns = {faces.area.unsqueeze(1), faces.centroid};
+    if (moments) columns.push_back(faces.moments);
+    const at::Tensor values = at::cat(columns, 1).contiguous();
+    Edges edges;
+    AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_graph", [&] {
+      edges = symmetric_edges<Exec, scalar_t>(first_by_row, count_by_row, graph.row_of_position.contiguous(),
+                                              faces.neighbor, values, n);
+    });
+    edge_index = at::stack({edges.key.remainder(n), edges.key.div(n, "floor")});
+    area = edges.area.contiguous();
+    centroid = edges.values.slice(1, 0, 3).contiguous();
+    if (moments) face_moments = edges.values.slice(1, 3, 12).contiguous();
   }
   const auto& [volume, cell_centroid, second_moment, status, neighbors_needed] = cells.cells;
-  return {volume, cell_centroid, second_moment, status, neighbors_needed, edge_index, area, centroid, wall_area};
+  return {volume,     cell_centroid, second_moment, status,   neighbors_needed,
+          edge_index, area,          centroid,      wall_area, face_moments};
 }
 
 }  // namespace ops
