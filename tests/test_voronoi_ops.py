@@ -121,14 +121,16 @@ def test_compile_voronoi(device, dtype, gen):
 
 
 def test_outputs_marked_non_differentiable(device, dtype, gen):
-    """Until their backward exists, the Voronoi ops' outputs do not look
-    differentiable: a loss through them raises instead of silently getting
-    no gradient."""
+    """Outputs without a backward do not look differentiable: a loss through
+    them raises instead of silently getting no gradient. (voronoi's volume,
+    centroid and second moment have one: test_voronoi_gradients.py.)"""
     points = rand(200, gen, dtype, device).requires_grad_()
     cells = torchvor.voronoi(points, UNIT)
-    for name in ("volume", "centroid", "second_moment"):
-        assert not getattr(cells, name).requires_grad
+    assert not cells.status.requires_grad and not cells.neighbors_needed.requires_grad
+    graph = torchvor.voronoi_graph(points, UNIT)
+    for value in (graph.area, graph.centroid, graph.wall_area):
+        assert not value.requires_grad
     with pytest.raises(RuntimeError, match="does not require grad"):
-        cells.volume.sum().backward()
+        graph.area.sum().backward()
     moved = torchvor.lloyd(points, UNIT, iters=1)
     assert not moved.requires_grad

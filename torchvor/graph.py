@@ -74,7 +74,7 @@ def voronoi_graph(
     _check_on_failure("voronoi_graph", on_failure)
     _check_tensor(points, "points")
     box_tensor = _box_for_call(points, box, batch)
-    (*cells, edge_index, area, centroid, wall_area) = torch.ops.torchvor.voronoi_graph.default(
+    (*cells, edge_index, area, centroid, wall_area, _moments) = torch.ops.torchvor.voronoi_graph.default(
         points, box_tensor, batch, k, memory_budget)
     cells = VoronoiCells(*cells)
     _report_failures("voronoi_graph", cells, on_failure)
@@ -115,12 +115,87 @@ def voronoi_laplacian(
 
 
 @torch.library.register_fake("torchvor::voronoi_graph")
-def _voronoi_graph_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET):
+def _voronoi_graph_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET, moments=False):
     edges = torch.library.get_ctx().new_dynamic_size()  # depends on the data
     n = points.shape[0]
     return (*_voronoi_cells_fake(points, box, batch, k, memory_budget),
             points.new_empty((2, edges), dtype=torch.int64), points.new_empty((edges,)),
-            points.new_empty((edges, 3)), points.new_empty((n, 6)))
+            points.new_empty((edges, 3)), points.new_empty((n, 6)), points.new_empty((edges if moments else 0, 9)))
 
 
 torch.library.register_autograd("torchvor::voronoi_graph", _no_backward, setup_context=_non_differentiable)
+
+
+# The gradients of voronoi_cells' volume, centroid and second moment with
+# respect to the points (../shared/design GRADIENTS.md): each face moves with
+# the points it bisects, the walls stay. The backward recomputes the cells'
+# faces with their moments (the same cells: the passes are deterministic).
+def _cells_setup_context(ctx, inputs, output) -> None:
+    points, box, batch, k, memory_budget = inputs
+    volume, centroid, _second_moment, status, neighbors_needed = output
+    ctx.mark_non_differentiable(status, neighbors_needed)
+    ctx.save_for_backward(points, box, batch, volume, centroid)
+    ctx.k, ctx.memory_budget = k, memory_budget
+
+
+def _cells_backward(ctx, grad_volume, grad_centroid, grad_second_moment, _grad_status, _grad_neighbors):
+    points, box, batch, volume, centroid = ctx.saved_tensors
+    if not ctx.needs_input_grad[0]:
+        return None, None, None, None, None
+    faces = torch.ops.torchvor.voronoi_graph.default(points.detach(), box, batch, ctx.k, ctx.memory_budget, True)
+    edge_index, area, face_centroid, _wall_area, moments = faces[5:]
+    grad = _cell_gradients(points.detach(), volume.detach(), centroid.detach(), edge_index, area, face_centroid,
+                           moments, grad_volume, grad_centroid, grad_second_moment)
+    return grad.to(points.dtype), None, None, None, None
+
+
+def _cell_gradients(points, volume, centroid, edge_index, area, face_centroid, moments,
+                    grad_volume, grad_centroid, grad_second_moment) -> torch.Tensor:
+    """d(volume, centroid, second moment)/d points contracted with their output
+    gradients (None: zero), in float64. For a face of cells i and j (area a,
+    centroid c, d = |x_j - x_i|, w_i = c - x_i, w_j = c - x_j; S and T its
+    moments u u^T and |u|^2 u, u = y - c), moving x_j moves it by
+    (x_j - y) . dx_j / d, and moving x_i by (y - x_i) . dx_i / d:
+    volume: dm_i = (a / d) (-w_j . dx_j + w_i . dx_i);
+    first moment about x_i (M): dM_i = -(S + a w_i w_j^T) dx_j / d + (S + a w_i w_i^T) dx_i / d;
+    centroid: dc_i = (dM_i - (c_i - x_i) dm_i) / m_i;
+    second moment (I): dI_i = -(R + Q w_j) . dx_j / d + (R + Q w_i) . dx_i / d - 2 m_i (c_i - x_i) . dx_i,
+    Q = tr S + a |w_i|^2, R = T + 2 S w_i."""
+    x = points.double()
+    n = x.shape[0]
+    zeros = x.new_zeros
+    g_m = grad_volume.double() if grad_volume is not None else zeros(n)
+    g_c = grad_centroid.double() if grad_centroid is not None else zeros(n, 3)
+    g_i = grad_second_moment.double() if grad_second_moment is not None else zeros(n)
+    m = volume.double()
+    offset = centroid.double() - x  # c_i - x_i
+    filled = m > 0
+    safe_m = torch.where(filled, m, torch.ones_like(m))
+    g_moment = torch.where(filled[:, None], g_c / safe_m[:, None], zeros(n, 3))  # dL/dM_i
+    g_m = g_m - torch.where(filled, (g_c * offset).sum(1) / safe_m, zeros(n))
+    grad = zeros(n, 3)
+    # the cells' own term of the second moment (the integrand's dependence on x_i)
+    grad -= (2 * g_i * torch.where(filled, m, zeros(n)))[:, None] * torch.nan_to_num(offset)
+    if edge_index.shape[1] == 0:
+        return grad
+    j, i = edge_index
+    a = area.double()
+    c = face_centroid.double()
+    d = (x[j] - x[i]).norm(dim=1)
+    w_i, w_j = c - x[i], c - x[j]
+    s = moments.double()
+    S = torch.stack([torch.stack([s[:, 0], s[:, 3], s[:, 4]], 1), torch.stack([s[:, 3], s[:, 1], s[:, 5]], 1),
+                     torch.stack([s[:, 4], s[:, 5], s[:, 2]], 1)], 1)  # (E, 3, 3)
+    T = s[:, 6:9]
+    G = g_moment[i]
+    SG = torch.einsum("ekl,el->ek", S, G)
+    Gw = (G * w_i).sum(1, keepdim=True)
+    Q = (s[:, 0] + s[:, 1] + s[:, 2] + a * (w_i * w_i).sum(1))[:, None]
+    R = T + 2 * torch.einsum("ekl,el->ek", S, w_i)
+    per_d = (1 / d)[:, None]
+    to_j = per_d * (-(g_m[i] * a)[:, None] * w_j - SG - a[:, None] * Gw * w_j - g_i[i][:, None] * (R + Q * w_j))
+    to_i = per_d * ((g_m[i] * a)[:, None] * w_i + SG + a[:, None] * Gw * w_i + g_i[i][:, None] * (R + Q * w_i))
+    return grad.index_add(0, j, to_j).index_add(0, i, to_i)
+
+
+torch.library.register_autograd("torchvor::voronoi_cells", _cells_backward, setup_context=_cells_setup_context)

@@ -407,7 +407,8 @@ def _no_backward(ctx, *grads):
 
 
 torch.library.register_autograd("torchvor::knn", _knn_backward, setup_context=_knn_setup_context)
-for _op in ("voronoi_cells", "voronoi_cells_grid_order", "lloyd_step"):
+# voronoi_cells' gradients are registered in graph.py (they need the faces).
+for _op in ("voronoi_cells_grid_order", "lloyd_step"):
     torch.library.register_autograd(f"torchvor::{_op}", _no_backward, setup_context=_non_differentiable)
 
 
