@@ -196,6 +196,25 @@ def test_cli_cells_writes_the_cell_table(tmp_path, suffix):
     assert (status == 0).all() and status.dtype == np.int8 and (neighbors > 0).all()
 
 
+def test_cli_graph_writes_the_faces(tmp_path):
+    """`graph` writes the library's Voronoi graph of the points."""
+    import torchvor
+
+    source = tmp_path / "points.npy"
+    np.save(source, POINTS)
+    out = tmp_path / "graph.npz"
+    result = run_cli("graph", source, "--dtype", "float64", "--out", out)
+    assert result.returncode == 0, result.stderr
+    saved = np.load(out)
+    expected = torchvor.voronoi_graph(torch.from_numpy(POINTS), (POINTS.min(0), POINTS.max(0)))
+    np.testing.assert_array_equal(saved["edge_index"], expected.edge_index.numpy())
+    np.testing.assert_allclose(saved["area"], expected.area.numpy(), rtol=1e-12)
+    np.testing.assert_allclose(saved["centroid"], expected.centroid.numpy(), rtol=1e-12)
+    np.testing.assert_allclose(saved["wall_area"], expected.wall_area.numpy(), rtol=1e-12)
+    assert saved["points"].shape == (8, 3) and (saved["status"] == 0).all()
+    assert_one_line_error(run_cli("graph", source, "--out", tmp_path / "graph.npy"), ".npz")
+
+
 def test_cli_plot_writes_a_png(tmp_path):
     pytest.importorskip("matplotlib")
     picture = tmp_path / "lloyd.png"

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchvor
-from torchvor.pyg import KNNGraph, RadiusGraph
+from torchvor.pyg import KNNGraph, RadiusGraph, VoronoiGraph
 
 
 def rand(n, gen, dtype, device):
@@ -60,7 +60,8 @@ def test_pyg_data_and_batch(device, gen):
     assert torch.equal(one.edge_index, torchvor.knn_graph(clouds[0].pos, 4))
     assert one.edge_attr.shape == (60 * 4, 1)
     batch = Batch.from_data_list(clouds)
-    for transform in (KNNGraph(k=4), RadiusGraph(r=0.3), Compose([RadiusGraph(r=0.3)])):
+    assert isinstance(VoronoiGraph(), BaseTransform)
+    for transform in (KNNGraph(k=4), RadiusGraph(r=0.3), Compose([RadiusGraph(r=0.3)]), VoronoiGraph()):
         out = transform(batch)
         src, dst = out.edge_index
         assert torch.equal(out.batch[src], out.batch[dst]), "an edge joins two clouds"
@@ -73,3 +74,20 @@ def test_pyg_data_and_batch(device, gen):
             torch.testing.assert_close(out.edge_attr[mine], alone.edge_attr)
             start += cloud.num_nodes
     assert "KNNGraph(k=4, loop=False)" in repr(KNNGraph(k=4)) and pyg.__version__
+
+
+def test_voronoi_graph_transform(device, dtype, gen):
+    """VoronoiGraph: the Voronoi graph's edges, face areas and lengths; each
+    cloud of a batch gets its own diagram."""
+    pos = rand(150, gen, dtype, device)
+    out = VoronoiGraph(box=([0, 0, 0], [1, 1, 1]))(types.SimpleNamespace(pos=pos))
+    expected = torchvor.voronoi_graph(pos, ([0, 0, 0], [1, 1, 1]))
+    assert torch.equal(out.edge_index, expected.edge_index)
+    assert out.edge_attr.shape == (expected.edge_index.shape[1], 2) and out.edge_attr.dtype == dtype
+    torch.testing.assert_close(out.edge_attr[:, 0], expected.area)
+    torch.testing.assert_close(out.edge_attr[:, 1:], lengths(pos, expected.edge_index))
+    batch = torch.repeat_interleave(torch.arange(2), torch.tensor([100, 50])).to(device)
+    both = VoronoiGraph()(types.SimpleNamespace(pos=pos, batch=batch))
+    src, dst = both.edge_index
+    assert torch.equal(batch[src], batch[dst])
+    assert "VoronoiGraph(box=None)" in repr(VoronoiGraph())

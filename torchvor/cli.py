@@ -15,6 +15,7 @@ import sys
 import time
 from typing import List, Optional, Tuple
 
+import numpy as np
 import torch
 
 from . import io as point_io
@@ -51,6 +52,15 @@ volume, centroid, second_moment, status, neighbors_needed.
 """
 
 
+GRAPH_EPILOG = """\
+output: .npz with arrays points (N,3), edge_index (2,E) int64 (row 0 the
+neighbour j, row 1 the cell i, sorted by i then j, every face both ways),
+area (E,) and centroid (E,3) of each face, wall_area (N,6) (each cell's area
+on the box walls -x, +x, -y, +y, -z, +z), volume (N,) and status (N,) int8
+(as in the cells command).
+"""
+
+
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
 
@@ -83,6 +93,12 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                                 epilog=CELLS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common_arguments(cells, out_help="cell table: .npz or .npy (structured array)")
     cells.set_defaults(run=run_cells)
+
+    graph = commands.add_parser("graph", help="the Voronoi graph: neighbours, face areas and centroids",
+                                description="Compute every face between two Voronoi cells of the points.",
+                                epilog=GRAPH_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_common_arguments(graph, out_help="graph arrays: .npz")
+    graph.set_defaults(run=run_graph)
     return parser
 
 
@@ -304,6 +320,38 @@ def run_cells(args) -> int:
         from .plot import plot_cells
 
         _write(args.plot, plot_cells, points, box, cells.volume)
+        print(f"torchvor: wrote the picture to {args.plot}")
+    return 0
+
+
+def run_graph(args) -> int:
+    from .graph import voronoi_graph
+    from .ops import CellStatus
+
+    points, box = _prepare(args, (".npz",), "the graph")
+    start = time.perf_counter()
+    graph = voronoi_graph(points, box, on_failure="flag")
+    edges = graph.edge_index.shape[1]
+    elapsed = time.perf_counter() - start
+    status = graph.cells.status
+    failed = int(((status != CellStatus.SUCCESS) & (status != CellStatus.DUPLICATE)).sum())
+    _say(args, f"torchvor graph: {points.shape[0]} cells, {edges // 2} faces between them in {elapsed:.2f} s")
+    if failed:
+        print(f"torchvor: warning: {failed} cell(s) could not be computed (no faces, non-zero status)",
+              file=sys.stderr)
+
+    def write(path):
+        np.savez(path, points=points.cpu().numpy(), edge_index=graph.edge_index.cpu().numpy(),
+                 area=graph.area.cpu().numpy(), centroid=graph.centroid.cpu().numpy(),
+                 wall_area=graph.wall_area.cpu().numpy(), volume=graph.cells.volume.cpu().numpy(),
+                 status=status.cpu().numpy())
+
+    _write(args.out, write)
+    print(f"torchvor: wrote {edges} edges ({edges // 2} faces) to {args.out}")
+    if _plot_wanted(args):
+        from .plot import plot_cells
+
+        _write(args.plot, plot_cells, points, box, graph.cells.volume)
         print(f"torchvor: wrote the picture to {args.plot}")
     return 0
 

@@ -4,8 +4,9 @@
 transforms take any object with ``pos`` (and ``batch`` for a batched
 ``Batch``) attributes. Where it is installed they are ``BaseTransform``s.
 
-    from torchvor.pyg import KNNGraph, RadiusGraph
+    from torchvor.pyg import KNNGraph, RadiusGraph, VoronoiGraph
     data = KNNGraph(k=8)(data)   # data.edge_index (2, E), data.edge_attr (E, 1) distances
+    data = VoronoiGraph()(data)  # data.edge_attr (E, 2): face area, distance
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from typing import Optional
 
 import torch
 
+from .graph import voronoi_graph
 from .ops import knn_graph
 from .radius import radius_graph
 
@@ -95,3 +97,35 @@ class RadiusGraph(_Base):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(r={self.r}, loop={self.loop}, max_num_neighbors={self.max_num_neighbors})"
+
+
+class VoronoiGraph(_Base):
+    """Adds the Voronoi graph of ``data.pos`` (torchvor.voronoi_graph): an
+    edge for every face between two cells, both ways, in PyG's layout (row 0
+    the neighbour, row 1 the cell, sorted by cell then neighbour).
+
+    Sets ``data.edge_index`` (2, E) int64 and ``data.edge_attr`` (E, 2): the
+    face's area (not differentiable) and the edge's length (differentiable in
+    ``pos``), in ``pos``'s dtype. A batched ``Batch``'s clouds
+    (``data.batch``) each get their own diagram and never connect.
+
+    Args:
+        box: the box of the cells, as torchvor.voronoi takes it; ``None``
+            (default) takes each cloud's bounding box.
+    """
+
+    def __init__(self, box=None):
+        self.box = box
+
+    def forward(self, data):
+        pos = _positions(data)
+        batch: Optional[torch.Tensor] = getattr(data, "batch", None)
+        graph = voronoi_graph(pos, self.box, batch=batch)
+        source, target = graph.edge_index
+        data.edge_index = graph.edge_index
+        length = (pos[source] - pos[target]).norm(dim=-1, keepdim=True)
+        data.edge_attr = torch.cat([graph.area.unsqueeze(-1), length], dim=-1)
+        return data
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(box={self.box})"
