@@ -1,5 +1,5 @@
-"""The Voronoi graph against the cells alone: torchvor.voronoi_graph and voronoi on
-the same points (the issue's target: the graph within 2x of the cells).
+"""The Voronoi graph and the cells' backward against the cells alone: torchvor.voronoi_graph,
+voronoi, and the backward of voronoi(...).volume.sum(), on the same points.
 
     python benchmarks/bench_graph.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white]
 """
@@ -10,6 +10,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
+import torch  # noqa: E402
 import torchvor  # noqa: E402
 
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
@@ -22,7 +23,8 @@ def main():
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000, 1_000_000]
     notes = [f"points in the unit cube, {args.dtype}, default k (the pilot's); median of {args.repeats} runs "
-             f"after {args.warmup} warm-up run(s)."]
+             f"after {args.warmup} warm-up run(s). backward: forward + backward of volume.sum(), "
+             f"less the forward's median."]
     rows = []
     for kind in args.kinds.split(","):
         for n in sizes:
@@ -32,12 +34,16 @@ def main():
             cells = common.time_fn(lambda: torchvor.voronoi(points, UNIT), device, args.warmup, args.repeats)
             graph = common.time_fn(lambda: torchvor.voronoi_graph(points, UNIT), device, args.warmup, args.repeats)
             edges = torchvor.voronoi_graph(points, UNIT).edge_index.shape[1]
-            common.log(f"{kind} n={n}: voronoi {common.fmt_s(cells)}, voronoi_graph {common.fmt_s(graph)}")
+            leaf = points.detach().requires_grad_()
+            backward = common.time_fn(lambda: torch.autograd.grad(torchvor.voronoi(leaf, UNIT).volume.sum(), leaf),
+                                      device, args.warmup, args.repeats) - cells
+            common.log(f"{kind} n={n}: voronoi {common.fmt_s(cells)}, voronoi_graph {common.fmt_s(graph)}, "
+                       f"backward of volume.sum() {common.fmt_s(backward)}")
             rows.append([kind, common.npoints_label(n), f"{edges / n:.2f}", common.fmt_s(cells), common.fmt_s(graph),
-                         common.fmt_ratio(graph / cells)])
+                         common.fmt_ratio(graph / cells), common.fmt_s(backward), common.fmt_ratio(backward / cells)])
             points = None
     common.print_results("Voronoi graph", ["points", "n", "edges a point", "voronoi s", "voronoi_graph s",
-                                           "graph / cells"], rows, notes)
+                                           "graph / cells", "backward s", "backward / cells"], rows, notes)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, then run the steps named (default: cudatests):
 # the tests (CPU and CUDA), the benchmarks, profiles and sanitizers; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
+#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
 # compare needs BASELINE=<source tree of another commit> (e.g. `git archive <commit> | tar -x -C .baseline`):
 # it is built beside this tree, its CUDA outputs compared bit for bit, and both timed in turns.
 set -u -o pipefail
@@ -62,7 +62,10 @@ for step in "${@:-cudatests}"; do
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100K,1M,10M --lloyd-iteration 2>&1 | tee "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100M --kinds blue 2>&1 | tee -a "$OUT/bench_voronoi.log"
-      python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log" ;;
+      python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log"
+      python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M 2>&1 | tee "$OUT/bench_graph.log" ;;
+    graph)  # voronoi_graph and the cells' backward against voronoi (1M, 10M blue and white)
+      python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 2>&1 | tee "$OUT/bench_graph.log" ;;
     compare)
       wait
       [ "$(cat "$OUT/baseline_build.rc" 2>/dev/null)" = 0 ] || { echo "baseline build failed"; tail -30 "$OUT/baseline_build.log"; status=1; continue; }
