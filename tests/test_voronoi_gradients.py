@@ -74,3 +74,20 @@ def test_status_and_neighbours_are_not_differentiable(device, gen):
     cells = torchvor.voronoi(points, UNIT)
     assert cells.volume.requires_grad and cells.centroid.requires_grad and cells.second_moment.requires_grad
     assert not cells.status.requires_grad and not cells.neighbors_needed.requires_grad
+
+
+def test_compiled_backward(device, gen):
+    """The backward traces under torch.compile(fullgraph=True) and gives the eager gradient."""
+    torch._dynamo.reset()
+    weights = torch.linspace(-1, 1, 100, dtype=torch.float64, device=device)
+
+    def loss(x):
+        cells = torchvor.voronoi(x, UNIT, on_failure="flag")
+        return (cells.volume * weights).sum() + (cells.centroid.sum(1) * weights).sum() + cells.second_moment.sum()
+
+    points = rand(100, gen, torch.float64, device)
+    x = points.clone().requires_grad_()
+    (expected,) = torch.autograd.grad(loss(x), x)
+    y = points.clone().requires_grad_()
+    (got,) = torch.autograd.grad(torch.compile(loss, fullgraph=True)(y), y)
+    torch.testing.assert_close(got, expected)

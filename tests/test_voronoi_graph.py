@@ -230,3 +230,20 @@ def test_opcheck_voronoi_graph(device, dtype, gen):
     batch = torch.repeat_interleave(torch.arange(2), torch.tensor([35, 25])).to(device)
     for args in [(points, box, None, None, 1 << 30), (points, box.expand(2, 2, 3).contiguous(), batch, 12, 1 << 30)]:
         torch.library.opcheck(torch.ops.torchvor.voronoi_graph.default, args)
+
+
+def test_compile_voronoi_graph(device, dtype, gen):
+    """voronoi_graph under torch.compile(fullgraph=True): the edge count is a
+    data-dependent size (failures are only flagged inside compiled code)."""
+    torch._dynamo.reset()
+
+    def f(p):
+        graph = torchvor.voronoi_graph(p, UNIT, on_failure="flag")
+        return graph.edge_index, graph.area * 2, graph.cells.volume
+
+    compiled = torch.compile(f, fullgraph=True)
+    points = rand(200, gen, dtype, device)
+    got, ref = compiled(points), f(points)
+    assert torch.equal(got[0], ref[0])
+    torch.testing.assert_close(got[1], ref[1])
+    torch.testing.assert_close(got[2], ref[2])

@@ -176,8 +176,6 @@ def _cell_gradients(points, volume, centroid, edge_index, area, face_centroid, m
     grad = zeros(n, 3)
     # the cells' own term of the second moment (the integrand's dependence on x_i)
     grad -= (2 * g_i * torch.where(filled, m, zeros(n)))[:, None] * torch.nan_to_num(offset)
-    if edge_index.shape[1] == 0:
-        return grad
     j, i = edge_index
     a = area.double()
     c = face_centroid.double()
