@@ -65,6 +65,48 @@ TV_HD DoubleDouble inverse_length(DoubleDouble length2) {
   return DoubleDouble(rsqrt_of(static_cast<double>(length2)));
 }
 
+// The smallest sine of a vertex's planes (|det| of their unit normals) at
+// which a cell computed in T for outputs of io_t has faces the arithmetic
+// resolves. Below it the vertex is off by about eps |v| / sine along the
+// line where two of its planes nearly meet: the volume barely moves, but
+// the face between those two planes is split wrongly (the cell of a point
+// beside two copies of another a few ulps apart: each copy's face takes a
+// share only exact arithmetic tells). Such cells go to wider arithmetic in
+// voronoi_graph's passes. 0: no limit (double-double, the last resort).
+// (voronoi_graph computes float32 points' cells in float64 or wider.)
+template <typename io_t, typename T> struct FaceSineLimit { static constexpr double value = 0.0; };
+template <> struct FaceSineLimit<float, double> { static constexpr double value = 1e-9; };
+template <> struct FaceSineLimit<double, double> { static constexpr double value = 1e-7; };
+
+// Whether every vertex of `cell` meets FaceSineLimit (NaN sines do not).
+template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
+TV_HD bool faces_resolved(const Cell& cell) {
+  constexpr double limit = FaceSineLimit<io_t, T>::value;
+  if constexpr (limit > 0.0) {
+    const int vertices = cell.vertex_count();
+    for (int t = 0; t < vertices; ++t) {
+      int ids[3];
+      if (!cell.vertex_planes(t, ids)) continue;
+      const Vec3<T> a = cell.plane(ids[0]).normal, b = cell.plane(ids[1]).normal, c = cell.plane(ids[2]).normal;
+      const T det = dot(cross(a, b), c);
+      const T sine = (det < T(0) ? -det : det) * rsqrt_of(dot(a, a)) * rsqrt_of(dot(b, b)) * rsqrt_of(dot(c, c));
+      if (!(sine >= T(limit))) return false;
+    }
+  }
+  return true;
+}
+
+// Two neighbours closer to each other than this fraction of their distance
+// from the seed (two copies of a point a few ulps apart) give bisectors that
+// a clip in T cannot tell apart: it keeps one plane (the other misses the
+// cell within the tolerance band) and gives it both faces. The volume is
+// right; the faces are not. Such cells go to wider arithmetic in
+// voronoi_graph's passes (core::ClipTolerance is far below these). 0: no
+// limit (double-double).
+template <typename io_t, typename T> struct FaceSeparationLimit { static constexpr double value = 0.0; };
+template <> struct FaceSeparationLimit<float, double> { static constexpr double value = 1e-10; };
+template <> struct FaceSeparationLimit<double, double> { static constexpr double value = 1e-10; };
+
 // A signed triangle (the apex at the origin, p and q) of weight s (twice
 // its area, times |normal|, signed): s (p p^T + q q^T + (p + q)(p + q)^T)
 // into `second` (xx, yy, zz, xy, xz, yz; 12 x the integral of y y^T over

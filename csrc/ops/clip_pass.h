@@ -95,14 +95,31 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     if constexpr (on_heap(MAX_PLANES)) {
 #if !defined(__CUDA_ARCH__)
       const std::unique_ptr<Cell> cell(new Cell);
-      const core::CellIntegrals<T> out = compute(*cell, t);
+      core::CellIntegrals<T> out = compute(*cell, t);
+      if constexpr (kFaces) check_faces_resolved(*cell, t, out);
       write(t, out, faces_of(*cell, t, out));
 #endif
     } else {
       Cell cell;
-      const core::CellIntegrals<T> out = compute(cell, t);
+      core::CellIntegrals<T> out = compute(cell, t);
+      if constexpr (kFaces) check_faces_resolved(cell, t, out);
       write(t, out, faces_of(cell, t, out));
     }
+  }
+
+  // voronoi_graph: a computed cell whose faces the arithmetic does not
+  // resolve (core::faces_resolved, or a listed neighbour within
+  // core::FaceSeparationLimit of a face's) is ill-conditioned: a later pass
+  // recomputes it wider.
+  template <typename Cell>
+  TV_HD void check_faces_resolved(const Cell& cell, int64_t t, core::CellIntegrals<T>& out) const {
+    if (out.status != core::kSuccess) return;
+    if (core::faces_resolved<io_t>(cell) && !near_copies_of_faces(cell, t)) return;
+    const T nan = T(0) / T(0);
+    out.status = core::kIllConditioned;
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
   }
 
   // A group of lanes computes cell t together, its arrays in `arrays`.
@@ -112,6 +129,43 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     const core::CellIntegrals<T> out = compute(cell, t);
     const int num_faces = faces_of(cell, t, out);
     if (lanes.index() == 0) write(t, out, num_faces);
+  }
+
+  // Whether a listed neighbour lies within core::FaceSeparationLimit of the
+  // neighbour across a face of computed cell t (relative to the face's
+  // distance), without being it.
+  template <typename Cell>
+  TV_HD bool near_copies_of_faces(const Cell& cell, int64_t t) const {
+    constexpr double limit = core::FaceSeparationLimit<io_t, T>::value;
+    if constexpr (limit > 0.0) {
+      bool named[MAX_PLANES];  // the planes a vertex names: the faces
+      const int planes = cell.plane_count();
+      for (int q = 0; q < planes; ++q) named[q] = false;
+      for (int v = 0; v < cell.vertex_count(); ++v) {
+        int ids[3];
+        if (!cell.vertex_planes(v, ids)) continue;
+        for (int e = 0; e < 3; ++e) named[ids[e]] = true;
+      }
+      const int32_t cell_id = cells[t];
+      const core::Vec3<T> seed = {T(points[3 * cell_id]), T(points[3 * cell_id + 1]), T(points[3 * cell_id + 2])};
+      const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
+      const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
+      for (int q = core::kBoxPlanes; q < planes; ++q) {  // the box's planes 0-5 may be unwritten
+        if (!named[q]) continue;
+        const core::Plane<T> p = cell.plane(q);
+        const core::Vec3<T> r = {-p.normal.x, -p.normal.y, -p.normal.z};
+        const T reach2 = T(limit * limit) * core::dot(r, r);
+        for (int32_t n = 0; n < k; ++n) {
+          const int32_t j = row[n * stride];
+          if (j < 0) break;
+          const core::Vec3<T> d = {T(points[3 * j]) - seed.x - r.x, T(points[3 * j + 1]) - seed.y - r.y,
+                                   T(points[3 * j + 2]) - seed.z - r.z};
+          const T d2 = core::dot(d, d);
+          if (d2 > T(0) && d2 <= reach2) return true;
+        }
+      }
+    }
+    return false;
   }
 
   // The cell's neighbour faces' count, written where kFaces asks (0 without).
@@ -253,8 +307,8 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // runs on the CPU only, one thread per cell.
   // The host's largest tiers run thread cells only (a warp cell's ids are bytes).
   // voronoi_graph's passes: thread cells, whose functors write the faces
-  // (no speculative pass runs then).
-  if constexpr (!kUpToDeviceCount) {
+  // (no speculative pass runs then), in float64 or wider (voronoi_passes).
+  if constexpr (!kUpToDeviceCount && !std::is_same<T, float>::value) {
     if (out.faces.defined()) {
       if constexpr (std::is_same<T, core::DoubleDouble>::value) {
         Exec::for_each(cells.size(0), functor(std::false_type(), std::true_type()));
@@ -264,6 +318,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       return;
     }
   }
+  TORCH_CHECK(!out.faces.defined(), "torchvor: internal error: a float32 pass of voronoi_graph");
   if constexpr (std::is_same<T, core::DoubleDouble>::value) {
     Exec::for_each(cells.size(0), functor(std::false_type(), std::false_type()));
   } else if constexpr (on_heap(MAX_PLANES)) {
