@@ -1,5 +1,5 @@
-"""Fuzzing campaign for torchvor.voronoi: point sets of many kinds, every
-result checked against independent oracles.
+"""Fuzzing campaign for torchvor.voronoi and voronoi_graph: point sets of
+many kinds, every result checked against independent oracles.
 
 The point sets come from tests/fuzz_cases.py. A campaign is a seed S and a
 range of case indices. Case I is drawn from a numpy Generator seeded by
@@ -34,11 +34,19 @@ is checked for:
   tolerance (outside, with volume and centroid inside: reported as
   second_moment, which does not fail the campaign);
 * on CUDA, for clouds small enough, the same statuses as the CPU's and
-  volumes within the same relative tolerance.
+  volumes within the same relative tolerance;
+* for cases of at most ``--graph-max-n`` points, torchvor.voronoi_graph
+  (check_graph): edges sorted, each face both ways with the same values, no
+  edge between clouds; every cell's faces closed (area times outward normal,
+  walls included, summing to zero within the tolerance of its surface); each
+  cloud's wall areas tiling its box's surface; and GRAPH_SAMPLE cells' face
+  areas within 10 x the tolerance of the oracle's (exact where Qhull
+  disagrees) (faces_certified).
 
 The oracle sees only the points near a cell: the nearest K of its cloud
 (cKDTree), K growing until the (K+1)-th lies beyond twice the radius of the
-Qhull cell of those K (then no other point can cut the cell). Where Qhull
+Qhull cell of those K (then no other point can cut the cell; a Qhull cell of
+no volume settles nothing). Where Qhull
 cannot build a cell (a box 1e-7 thin, a cell many orders of magnitude
 smaller than its box), it builds it on the input scaled to a unit box, or
 in a small box around the seed (_Oracles). Cells the oracles cannot decide
@@ -88,7 +96,9 @@ CELL_IMPLS = ("default", "thread", "cooperative")  # "all" runs thread and coope
 EXACT_MAX_FACETS = 40  # the exact oracle enumerates every triple of planes: its cost grows as the cube of the facets
 SLOWEST_CASES = 5  # the report lists the slowest cases (their time covers the checks too)
 COUNTERS = ("cases", "runs", "cells", "certified", "oracle_skipped", "failed_cells", "silently_wrong",
-            "wrong_volume_sums", "unexpected_exceptions", "timeouts", "expected_errors", "second_moment_off")
+            "wrong_volume_sums", "unexpected_exceptions", "timeouts", "expected_errors", "second_moment_off",
+            "graphs", "faces_certified")
+GRAPH_SAMPLE = 3  # cells of a case's graph whose faces go to the oracle
 # any of these makes a campaign fail. second_moment_off (a cell whose volume and centroid are
 # within the guarantee, its second moment outside the same relative tolerance) is reported only.
 FAILURES = ("failed_cells", "silently_wrong", "wrong_volume_sums", "unexpected_exceptions", "timeouts")
@@ -231,7 +241,8 @@ def local_candidates(oracle: _Oracles, tree, points: np.ndarray, i: int, box, ma
     """Indices (sorted, into `points` of one cloud) of the nearest K points
     to point i plus i itself, with K grown until the next point lies at least
     twice the radius of the oracle's cell of those K away (so no other point
-    can cut the cell), or all points. Raises OracleSkipped beyond max_points."""
+    can cut the cell; a cell of no volume never settles it), or all points.
+    Raises OracleSkipped beyond max_points."""
     n = len(points)
     k = min(n, 64)
     while True:
@@ -243,7 +254,9 @@ def local_candidates(oracle: _Oracles, tree, points: np.ndarray, i: int, box, ma
             return sub
         pos = int(np.searchsorted(sub, i))
         ref = oracle.qhull(points[sub], pos, box)
-        if ref.duplicate or dist[-1] >= 2 * ref.radius * (1 + 1e-6):
+        # A cell of no volume (Qhull lost a cell a few thousand ulps wide) has no
+        # radius to trust: more points, up to all of them.
+        if ref.duplicate or (ref.volume > 0 and dist[-1] >= 2 * ref.radius * (1 + 1e-6)):
             return sub
         if k >= max_points:
             raise OracleSkipped(f"the cell needs more than {max_points} candidate points")
@@ -376,7 +389,7 @@ class Campaign:
 
     def __init__(self, seed=0, *, device="cpu", max_n=20000, dtype="both", cells="default", sample=12, suspects=4,
                  kinds=None, compare_max_n=20000, oracle_max_points=50000, exact_max_facets=EXACT_MAX_FACETS,
-                 out=None):
+                 graph_max_n=20000, out=None):
         self.seed = seed
         self.device = torch.device(device)
         self.max_n, self.dtype, self.sample, self.suspects = max_n, dtype, sample, suspects
@@ -384,6 +397,7 @@ class Campaign:
         self.kinds = list(kinds) if kinds else None
         self.compare_max_n, self.oracle_max_points = compare_max_n, oracle_max_points
         self.exact_max_facets = exact_max_facets
+        self.graph_max_n = graph_max_n
         self.out = out
         settings = {"seed": seed, "device": str(device), "max_n": max_n, "dtype": dtype, "cells": cells,
                     "sample": sample, "suspects": suspects, "kinds": self.kinds}
@@ -452,6 +466,9 @@ class Campaign:
         for impl in self.impls:
             self.current_impl = impl
             self.run_one(case, impl, shared)
+        if 0 < case.n <= self.graph_max_n and not case.expect_error:
+            self.current_impl = "graph"
+            self.check_graph(case, shared)
         seconds = time.perf_counter() - t0
         self.report.slowest.append({"seconds": round(seconds, 2), "case": case.describe(),
                                     "replay": replay_command(case, self.report.settings)})
@@ -610,6 +627,123 @@ class Campaign:
         for text, count in oracle.notes.items():
             self.report.oracle_notes[text] = self.report.oracle_notes.get(text, 0) + count
 
+    def check_graph(self, case: Case, shared: Dict) -> None:
+        """torchvor.voronoi_graph of the case: its edges sorted, without self loops or
+        edges between clouds, each face both ways with the same values; every
+        SUCCESS cell's faces closed (the sum of area times outward normal, walls
+        included, zero to the dtype's tolerance of its surface); each cloud's
+        wall areas summing to its box's surface; and GRAPH_SAMPLE cells' faces
+        against the Qhull oracle's (areas to 10 x the tolerance of the cell's
+        surface)."""
+        kind, dtype = case.kind, case.dtype
+        try:
+            points, box, batch = case.arguments(self.device)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                graph = torchvor.voronoi_graph(points, box, batch=batch, on_failure="flag")
+        except Exception as error:  # noqa: BLE001 - every exception is a finding
+            self.report.add(kind, "unexpected_exceptions")
+            self.problem(case, "graph", "unexpected_exception",
+                         "voronoi_graph: " + "".join(traceback.format_exception_only(type(error), error)).strip())
+            return
+        self.report.add(kind, "graphs")
+        n = case.n
+        source, target = (t.cpu().numpy() for t in graph.edge_index)
+        area = graph.area.cpu().double().numpy()
+        centroid = graph.centroid.cpu().double().numpy()
+        walls = graph.wall_area.cpu().double().numpy()
+        status = graph.cells.status.cpu().numpy()
+        cloud_of = np.zeros(n, dtype=np.int64) if case.batch is None else case.batch
+        key = target.astype(np.int64) * n + source
+        reverse = source.astype(np.int64) * n + target
+        at = np.minimum(np.searchsorted(key, reverse), max(len(key) - 1, 0))
+        wrong = []
+        if len(key) and not (np.all(key[1:] > key[:-1]) and np.all(source != target) and np.all(area > 0)):
+            wrong.append("edges not sorted, a self loop or a face of no area")
+        if len(key) and not (np.array_equal(key[at], reverse) and np.array_equal(area[at], area)
+                             and np.array_equal(centroid[at], centroid)):
+            wrong.append("a face not the same both ways")
+        if len(key) and np.any(cloud_of[source] != cloud_of[target]):
+            wrong.append("an edge between two clouds")
+        p = case.points.astype(np.float64)
+        normal = p[source] - p[target]
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        total = np.zeros((n, 3))
+        np.add.at(total, target, area[:, None] * normal)
+        total += np.stack([walls[:, 1] - walls[:, 0], walls[:, 3] - walls[:, 2], walls[:, 5] - walls[:, 4]], 1)
+        surface = np.bincount(target, weights=area, minlength=n) + walls.sum(1)
+        ok = status == CellStatus.SUCCESS
+        with np.errstate(divide="ignore", invalid="ignore"):
+            closure = np.where(ok, np.linalg.norm(total, axis=1) / surface, 0.0)
+        open_cells = np.nonzero(~(closure <= CELL_RTOL[dtype]))[0]
+        if len(open_cells):
+            wrong.append(f"{len(open_cells)} cells whose faces do not close (worst {np.nanmax(closure):.2e} of their "
+                         f"surface): cells {open_cells[:10].tolist()}")
+        for cloud, members, (lo, hi) in case.clouds():
+            if not ok[members].all():
+                continue
+            extent = hi - lo
+            expected = 2 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[0] * extent[2])
+            got = walls[members].sum()
+            if not abs(got - expected) <= SUM_RTOL[dtype] * expected:
+                wrong.append(f"cloud {cloud}: the wall areas sum to {got!r}, its box's surface is {expected!r}")
+        for message in wrong:
+            self.report.add(kind, "silently_wrong")
+            self.problem(case, "graph", "graph", message)
+        self.check_faces(case, graph, source, target, area, walls, ok, shared)
+
+    def check_faces(self, case: Case, graph, source, target, area, walls, ok, shared) -> None:
+        """GRAPH_SAMPLE random SUCCESS cells' faces against the Qhull oracle's,
+        the exact oracle deciding where they disagree."""
+        from scipy.spatial import cKDTree
+
+        kind, dtype = case.kind, case.dtype
+        rng = np.random.default_rng([case.seed, case.index, 2])
+        candidates = np.nonzero(ok)[0]
+        cloud_of = np.zeros(case.n, dtype=np.int64) if case.batch is None else case.batch
+        clouds = {k: (members, box) for k, members, box in case.clouds()}
+        oracle = _Oracles(self.exact_max_facets)
+        for i in rng.choice(candidates, size=min(GRAPH_SAMPLE, len(candidates)), replace=False):
+            i = int(i)
+            members, (lo, hi) = clouds[int(cloud_of[i])]
+            if int(cloud_of[i]) not in shared:
+                shared[int(cloud_of[i])] = cKDTree(case.points[members])
+            local = int(np.searchsorted(members, i))
+            on = target == i
+            got = {int(j): float(a) for j, a in zip(source[on], area[on])}
+            got.update({-1 - w: float(walls[i, w]) for w in range(6) if walls[i, w] > 0})
+
+            def off(reference, sub):
+                """The largest face area difference, and the reference's surface."""
+                expected = {(int(members[sub[key]]) if key >= 0 else key): value[0]
+                            for key, value in reference.faces.items()}
+                worst = max(abs(got.get(key, 0.0) - expected.get(key, 0.0)) for key in set(got) | set(expected))
+                return worst, reference.area, sorted(expected)[:12]
+
+            try:
+                sub = local_candidates(oracle, shared[int(cloud_of[i])], case.points[members], local, (lo, hi),
+                                       self.oracle_max_points)
+                sub = without_copies(case.points[members], sub, local)
+                points = case.points[members][sub].astype(np.float64)
+                pos = int(np.searchsorted(sub, local))
+                worst, surface, names = off(voronoi_cell_oracle(points, pos, (lo, hi)), sub)
+                if not worst <= 10 * CELL_RTOL[dtype] * surface:
+                    worst, surface, names = off(oracle.arbiter(points, pos, (lo, hi)), sub)
+            except OracleSkipped as error:
+                self._skip(f"faces: {error}")
+                continue
+            except Exception as error:  # noqa: BLE001 - the oracle's own failures (Qhull)
+                self._skip(f"faces: oracle error: {type(error).__name__}")
+                continue
+            if worst <= 10 * CELL_RTOL[dtype] * surface:
+                self.report.add(kind, "faces_certified")
+                continue
+            self.report.add(kind, "silently_wrong")
+            self.problem(case, "graph", "graph_faces", f"cell {i}: a face area off by {worst!r} (the oracle's "
+                         f"surface {surface!r}); faces {sorted(got)[:12]} vs the oracle's {names}", cell=i)
+        for text, count in oracle.notes.items():
+            self.report.oracle_notes[text] = self.report.oracle_notes.get(text, 0) + count
+
     def _skip(self, reason: str) -> None:
         self.report.skip_reasons[reason] = self.report.skip_reasons.get(reason, 0) + 1
 
@@ -764,6 +898,8 @@ def main(argv=None) -> int:
     parser.add_argument("--kinds", help="comma-separated subset of: " + ", ".join(KINDS))
     parser.add_argument("--compare-max-n", type=int, default=20000,
                         help="on CUDA, compare with the CPU for cases of at most this many points")
+    parser.add_argument("--graph-max-n", type=int, default=20000,
+                        help="also check voronoi_graph on cases of at most this many points (0: never)")
     parser.add_argument("--json", help="write the counts and problems to this file")
     parser.add_argument("--quiet", action="store_true", help="no line per case")
     parser.add_argument("--time-budget", type=float, default=0.0,
@@ -786,6 +922,7 @@ def main(argv=None) -> int:
         parser.error("--device cuda: CUDA is not available")
     campaign = Campaign(args.seed, device=args.device, max_n=args.max_n, dtype=args.dtype, cells=args.cells,
                         sample=args.sample, suspects=args.suspects, kinds=kinds, compare_max_n=args.compare_max_n,
+                        graph_max_n=args.graph_max_n,
                         out=None if args.quiet else sys.stdout)
     indices = args.case if args.case is not None else range(args.start, args.start + args.cases)
     if args.worker is not None:

@@ -383,7 +383,8 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     # second moment came out 1.2e-10 off the exact rational value.
     vol, first_moment, second = tetrahedron_integrals(c, tri[:, 0], tri[:, 1], tri[:, 2], np.longdouble)
     volume = float(vol.sum())
-    centroid = (first_moment.sum(0) / vol.sum()).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a cell Qhull lost: no volume, NaN centroid
+        centroid = (first_moment.sum(0) / vol.sum()).astype(np.float64)
     # a plane bounds a facet when at least 3 distinct vertices lie on it
     planes, count = np.unique(plane_of, return_counts=True)
     facets = sorted(int(owner[h]) for h, cnt in zip(planes, count) if cnt >= 3 and owner[h] >= 0)
@@ -533,11 +534,13 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     first = [Fraction(0)] * 3
     second = Fraction(0)
     area2_total = 0.0
+    faces = {}  # as voronoi_cell_oracle's: by point (>= 0) or wall (-1 - w)
     for t, ring in on_plane.items():
         if len(ring) < 3:
             continue
         ordered = _ring_order(ring, planes[t][0])
         a0 = ordered[0]
+        face_area2, face_moment = 0.0, np.zeros(3)
         for b, c in zip(ordered[1:-1], ordered[2:]):
             six = _dot(a0, _cross(b, c))
             vol = abs(six) / 6
@@ -548,10 +551,17 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
             second += vol / 20 * (_dot(a0, a0) + _dot(b, b) + _dot(c, c) + _dot(total, total))
             e1 = np.array([float(b[a] - a0[a]) for a in range(3)])
             e2 = np.array([float(c[a] - a0[a]) for a in range(3)])
-            area2_total += float(np.linalg.norm(np.cross(e1, e2)))
+            area2 = float(np.linalg.norm(np.cross(e1, e2)))
+            area2_total += area2
+            face_area2 += area2
+            face_moment += area2 * np.array([float(a0[a] + b[a] + c[a]) for a in range(3)]) / 3
+        if face_area2 > 0:
+            # box_planes: for each axis a, the hi wall (2a + 1), then the lo wall (2a)
+            key = chosen[t - 6] if t >= 6 else -1 - (2 * (t // 2) + (1 - t % 2))
+            faces[key] = (0.5 * face_area2, face_moment / face_area2 + pts[i])
     seed_np = pts[i]
     verts = np.array([[float(x) for x in v] for v in vertices]) + seed_np
     centroid = np.array([float(first[a] / volume) for a in range(3)]) + seed_np
     facets = sorted(chosen[t - 6] for t, ring in on_plane.items() if len(ring) >= 3 and t >= 6)
     return CellOracle(float(volume), centroid, float(second), verts, np.array(facets, dtype=np.int64),
-                      seed_np.copy(), area=0.5 * area2_total)
+                      seed_np.copy(), area=0.5 * area2_total, faces=faces)

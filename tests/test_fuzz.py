@@ -37,6 +37,7 @@ def test_fuzz_ci_slice(device):
     assert set(report.per_kind) == set(fuzz.KINDS), text
     assert counts["expected_errors"] == 2 * len(range(fuzz.INVALID_EVERY - 1, CI_CASES, fuzz.INVALID_EVERY)), text
     assert counts["certified"] > 0, text
+    assert counts["graphs"] > 0 and counts["faces_certified"] > 0, text
     assert counts["failed_cells"] == 0, text
     assert counts["silently_wrong"] == 0, text
     assert counts["wrong_volume_sums"] == 0, text
@@ -57,6 +58,9 @@ REGRESSIONS = [
     (5, 1832, 20000, "float32", "needle cells 0.003 x 6 far from the origin: 2.3e-3 off (long side's rounding)"),
     (4, 103, 1000000, "float32", "anisotropic lattice, cells 0.3 x 96: 5e-4 off (long side's rounding)"),
     (11, 1349, 1000000, "both", "anisotropic lattice, cells 2 x 2e-4 (float64): 1.2e-9 off (long side's rounding)"),
+    (5, 22, 3000, "both", "two close pairs 1-4 ulps apart (float64): faces split wrongly, not closed (graph)"),
+    (5, 37, 3000, "float32", "close pairs 1-4 ulps apart: 138 cells' faces not closed (graph)"),
+    (13, 145, 20000, "both", "density r^8.3 about a point, cells 1e-12 wide: Qhull lost the cell (oracle)"),
 ]
 
 
