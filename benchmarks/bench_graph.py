@@ -1,7 +1,11 @@
 """The Voronoi graph and the cells' backward against the cells alone: torchvor.voronoi_graph,
 voronoi, and the backward of voronoi(...).volume.sum(), on the same points.
 
-    python benchmarks/bench_graph.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white]
+    python benchmarks/bench_graph.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white] [--voro]
+
+--voro also times voro++ (pyvoro2, one core, float64) computing each cell's faces: their
+neighbours and vertices (voro++ gives no face areas through pyvoro2; computing them from
+the vertices is not charged to it).
 """
 from __future__ import annotations
 
@@ -16,9 +20,27 @@ import torchvor  # noqa: E402
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
 
 
+def voro_faces(points):
+    """Seconds of voro++ (pyvoro2's native call, one run) computing every cell's
+    faces (neighbours and vertices) in the unit cube, or None without pyvoro2."""
+    try:
+        import numpy as np
+        from pyvoro2 import _core as core
+    except ImportError:
+        return None
+    pts = points.detach().cpu().double().numpy()
+    hi = float(np.nextafter(1.0, 2.0))  # voro++ wants points in [lo, hi)
+    bounds = ((0.0, hi),) * 3
+    blocks = (max(1, int(len(pts) ** (1 / 3) / 2.5)),) * 3
+    ids = np.arange(len(pts), dtype=np.int32)
+    return common.time_fn(lambda: core.compute_box_standard(pts, ids, bounds, blocks, (False,) * 3, 8,
+                                                            (True, True, True)), "cpu", 0, 1)
+
+
 def main():
     parser = common.base_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
+    parser.add_argument("--voro", action="store_true", help="also time voro++ (pyvoro2) computing the faces")
     args = parser.parse_args()
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000, 1_000_000]
@@ -39,11 +61,16 @@ def main():
                                       device, args.warmup, args.repeats) - cells
             common.log(f"{kind} n={n}: voronoi {common.fmt_s(cells)}, voronoi_graph {common.fmt_s(graph)}, "
                        f"backward of volume.sum() {common.fmt_s(backward)}")
+            voro = voro_faces(points) if args.voro else None
+            if voro is not None:
+                common.log(f"{kind} n={n}: voro++ faces {common.fmt_s(voro)}")
             rows.append([kind, common.npoints_label(n), f"{edges / n:.2f}", common.fmt_s(cells), common.fmt_s(graph),
-                         common.fmt_ratio(graph / cells), common.fmt_s(backward), common.fmt_ratio(backward / cells)])
+                         common.fmt_ratio(graph / cells), common.fmt_s(backward), common.fmt_ratio(backward / cells),
+                         common.fmt_s(voro), common.fmt_ratio(voro / graph if voro else None)])
             points = None
     common.print_results("Voronoi graph", ["points", "n", "edges a point", "voronoi s", "voronoi_graph s",
-                                           "graph / cells", "backward s", "backward / cells"], rows, notes)
+                                           "graph / cells", "backward s", "backward / cells", "voro++ faces s",
+                                           "graph speed-up vs voro++"], rows, notes)
 
 
 if __name__ == "__main__":
