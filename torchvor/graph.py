@@ -48,11 +48,12 @@ def voronoi_graph(
     The cells are those of :func:`torchvor.voronoi` (same arguments, recovery
     and statuses); each face comes from the same clipping. Cells i and j
     compute their shared face apart; each direction gets the mean of the two
-    (area, and centroid weighted by area). A face whose area is below about
-    1e-10 (float32) or 1e-20 (float64) of the squared distance from its cell's
-    point to the face's farthest vertex is rounding noise on an edge or a
-    vertex (four or more cospherical points, as in a lattice) and is not an
-    edge; a face that only one of its two cells keeps is kept both ways.
+    (area, and centroid weighted by area). The cells are computed in float64
+    (for float32 points too) or wider where their faces need it. A face whose
+    area is below about 1e-20 of the squared distance from its cell's point to
+    the face's farthest vertex is rounding noise on an edge or a vertex (four
+    or more cospherical points, as in a lattice) and is not an edge; a face
+    that only one of its two cells keeps is kept both ways.
 
     Memory: the passes run twice, counting each cell's faces, then writing
     them where the counts say; no N x k array is held beyond the neighbour
