@@ -48,8 +48,8 @@ def voronoi_graph(
     The cells are those of :func:`torchvor.voronoi` (same arguments, recovery
     and statuses); each face comes from the same clipping. Cells i and j
     compute their shared face apart; each direction gets the mean of the two
-    (area, and centroid weighted by area). The cells are computed in float64
-    (for float32 points too) or wider where their faces need it. A face whose
+    (area, and centroid weighted by area). Float32 points are computed as
+    float64 (outputs rounded to float32), and cells whose faces need it wider. A face whose
     area is below about 1e-20 of the squared distance from its cell's point to
     the face's farthest vertex is rounding noise on an edge or a vertex (four
     or more cospherical points, as in a lattice) and is not an edge; a face

@@ -73,9 +73,8 @@ TV_HD DoubleDouble inverse_length(DoubleDouble length2) {
 // beside two copies of another a few ulps apart: each copy's face takes a
 // share only exact arithmetic tells). Such cells go to wider arithmetic in
 // voronoi_graph's passes. 0: no limit (double-double, the last resort).
-// (voronoi_graph computes float32 points' cells in float64 or wider.)
+// (voronoi_graph computes float32 points as float64.)
 template <typename io_t, typename T> struct FaceSineLimit { static constexpr double value = 0.0; };
-template <> struct FaceSineLimit<float, double> { static constexpr double value = 1e-9; };
 template <> struct FaceSineLimit<double, double> { static constexpr double value = 1e-7; };
 
 // Whether every vertex of `cell` meets FaceSineLimit (NaN sines do not).
@@ -104,7 +103,6 @@ TV_HD bool faces_resolved(const Cell& cell) {
 // voronoi_graph's passes (core::ClipTolerance is far below these). 0: no
 // limit (double-double).
 template <typename io_t, typename T> struct FaceSeparationLimit { static constexpr double value = 0.0; };
-template <> struct FaceSeparationLimit<float, double> { static constexpr double value = 1e-10; };
 template <> struct FaceSeparationLimit<double, double> { static constexpr double value = 1e-10; };
 
 // A signed triangle (the apex at the origin, p and q) of weight s (twice

@@ -307,7 +307,8 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // runs on the CPU only, one thread per cell.
   // The host's largest tiers run thread cells only (a warp cell's ids are bytes).
   // voronoi_graph's passes: thread cells, whose functors write the faces
-  // (no speculative pass runs then), in float64 or wider (voronoi_passes).
+  // (no speculative pass runs then), in float64 or wider (the op computes
+  // float32 points as float64: voronoi_graph_forward).
   if constexpr (!kUpToDeviceCount && !std::is_same<T, float>::value) {
     if (out.faces.defined()) {
       if constexpr (std::is_same<T, core::DoubleDouble>::value) {

@@ -139,10 +139,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   // The retry loop's passes (the tests may inject a fault after the first).
   auto run_round = with_test_faults(options.testing, out, run);
   auto run_speculative_round = with_test_faults(options.testing, out, run_speculative);
-  // voronoi_graph's cells start in float64: float32's rounding, which the
-  // volumes' checks bound, can still move a face by more (a needle's long
-  // faces, two planes of points a few ulps apart).
-  PassSettings pass{std::min(k, largest_cloud), 0, faces != nullptr ? Precision::kFloat64 : Precision::kInput};
+  PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
   first_pass_k = pass.k;
   at::Tensor pending = positions;
   // The last scan's failed cells, and whether some of them no pass wrote.

@@ -137,10 +137,28 @@ Edges symmetric_edges(const at::Tensor& first, const at::Tensor& count, const at
 // The op's outputs: the cells (voronoi_cells'), then edge_index (2, E)
 // int64, area (E,), face centroid (E, 3), wall_area (N, 6) and, with
 // `moments`, the faces' moments (E, 9) (core::Face; else (0, 9)).
+// Float32 points (and box) are computed as float64 and the floating outputs
+// rounded back: faces ask more than float32 resolves (a needle's long faces,
+// two planes a few ulps apart), and a float32 kNN ranks neighbours whose
+// distances differ below its rounding by index, which leaves a face to the
+// wrong one.
 template <typename Exec>
 GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& box,
                                    const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                                    int64_t memory_budget, bool moments) {
+  if (points.scalar_type() == at::kFloat && box.scalar_type() == at::kFloat) {
+    GraphOutputs out = voronoi_graph_forward<Exec>(points.to(at::kDouble), box.to(at::kDouble), batch, k,
+                                                   memory_budget, moments);
+    const auto as_float = [](at::Tensor& t) { t = t.to(at::kFloat); };
+    as_float(std::get<0>(out));
+    as_float(std::get<1>(out));
+    as_float(std::get<2>(out));
+    as_float(std::get<6>(out));
+    as_float(std::get<7>(out));
+    as_float(std::get<8>(out));
+    as_float(std::get<9>(out));
+    return out;
+  }
   GraphFaces graph;
   graph.moments = moments;
   const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, false, {}, &graph);
