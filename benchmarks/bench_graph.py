@@ -1,11 +1,12 @@
 """The Voronoi graph and the cells' backward against the cells alone: torchvor.voronoi_graph,
 voronoi, and the backward of voronoi(...).volume.sum(), on the same points.
 
-    python benchmarks/bench_graph.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white] [--voro]
+    python benchmarks/bench_graph.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white] [--voro] [--profile]
 
 --voro also times voro++ (pyvoro2, one core, float64) computing each cell's faces: their
 neighbours and vertices (voro++ gives no face areas through pyvoro2; computing them from
-the vertices is not charged to it).
+the vertices is not charged to it). --profile prints where one voronoi_graph call and one
+backward spend their time (torch.profiler, the largest size of each kind).
 """
 from __future__ import annotations
 
@@ -37,10 +38,27 @@ def voro_faces(points):
                                                             (True, True, True)), "cpu", 0, 1)
 
 
+def profile(points, leaf, device, label):
+    """Print the operators and kernels of one voronoi_graph call and one backward, by self time."""
+    from torch.profiler import ProfilerActivity, profile as torch_profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    for name, fn in (("voronoi_graph", lambda: torchvor.voronoi_graph(points, UNIT)),
+                     ("backward", lambda: torch.autograd.grad(torchvor.voronoi(leaf, UNIT).volume.sum(), leaf))):
+        with torch_profile(activities=activities) as prof:
+            fn()
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+        common.log(f"profile of {name}, {label}:\n" + prof.key_averages().table(sort_by=sort, row_limit=18,
+                                                                                 max_name_column_width=70))
+
+
 def main():
     parser = common.base_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
     parser.add_argument("--voro", action="store_true", help="also time voro++ (pyvoro2) computing the faces")
+    parser.add_argument("--profile", action="store_true", help="profile one graph and one backward call")
     args = parser.parse_args()
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000, 1_000_000]
@@ -61,6 +79,8 @@ def main():
                                       device, args.warmup, args.repeats) - cells
             common.log(f"{kind} n={n}: voronoi {common.fmt_s(cells)}, voronoi_graph {common.fmt_s(graph)}, "
                        f"backward of volume.sum() {common.fmt_s(backward)}")
+            if args.profile and n >= 0.99 * max(sizes):
+                profile(points, leaf, device, f"{kind} n={n}")
             voro = voro_faces(points) if args.voro else None
             if voro is not None:
                 common.log(f"{kind} n={n}: voro++ faces {common.fmt_s(voro)}")

@@ -65,7 +65,7 @@ for step in "${@:-cudatests}"; do
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log"
       python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M 2>&1 | tee "$OUT/bench_graph.log" ;;
     graph)  # voronoi_graph and the cells' backward against voronoi (1M, 10M blue and white)
-      python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 2>&1 | tee "$OUT/bench_graph.log" ;;
+      python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 --profile 2>&1 | tee "$OUT/bench_graph.log" ;;
     compare)
       wait
       [ "$(cat "$OUT/baseline_build.rc" 2>/dev/null)" = 0 ] || { echo "baseline build failed"; tail -30 "$OUT/baseline_build.log"; status=1; continue; }

@@ -95,15 +95,17 @@ TV_HD bool faces_resolved(const Cell& cell) {
   return true;
 }
 
-// Two neighbours closer to each other than this fraction of their distance
-// from the seed (two copies of a point a few ulps apart) give bisectors that
-// a clip in T cannot tell apart: it keeps one plane (the other misses the
-// cell within the tolerance band) and gives it both faces. The volume is
-// right; the faces are not. Such cells go to wider arithmetic in
-// voronoi_graph's passes (core::ClipTolerance is far below these). 0: no
-// limit (double-double).
+// Two neighbours j and q closer to each other than this fraction of q's
+// distance from the seed have nearly coincident bisectors. Where they cross
+// the cell, j's face is a sliver of width about tolerance |r|^2 / |r_j - r_q|
+// which a clip in T keeps within its tolerance band (core::ClipTolerance):
+// the plane is dropped and q takes both faces. The volume is right; the
+// faces are not. A cell whose face neighbour q has such a j that is no face
+// but comes within FaceBandMargin bands of a vertex goes to wider arithmetic
+// in voronoi_graph's passes. 0: no check (double-double).
 template <typename io_t, typename T> struct FaceSeparationLimit { static constexpr double value = 0.0; };
-template <> struct FaceSeparationLimit<double, double> { static constexpr double value = 1e-10; };
+template <> struct FaceSeparationLimit<double, double> { static constexpr double value = 1e-3; };
+constexpr double FaceBandMargin = 16.0;
 
 // A signed triangle (the apex at the origin, p and q) of weight s (twice
 // its area, times |normal|, signed): s (p p^T + q q^T + (p + q)(p + q)^T)

@@ -108,8 +108,8 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
   }
 
   // voronoi_graph: a computed cell whose faces the arithmetic does not
-  // resolve (core::faces_resolved, or a listed neighbour within
-  // core::FaceSeparationLimit of a face's) is ill-conditioned: a later pass
+  // resolve (core::faces_resolved, or a face's near copy dropped within the
+  // tolerance band: near_copies_of_faces) is ill-conditioned: a later pass
   // recomputes it wider.
   template <typename Cell>
   TV_HD void check_faces_resolved(const Cell& cell, int64_t t, core::CellIntegrals<T>& out) const {
@@ -131,17 +131,18 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     if (lanes.index() == 0) write(t, out, num_faces);
   }
 
-  // Whether a listed neighbour lies within core::FaceSeparationLimit of the
-  // neighbour across a face of computed cell t (relative to the face's
-  // distance), without being it.
+  // Whether a listed neighbour j that is no face of computed cell t lies
+  // within core::FaceSeparationLimit of a face's neighbour q (relative to
+  // q's distance) and its bisector within core::FaceBandMargin tolerance
+  // bands of a vertex: its face may have been dropped within the band.
   template <typename Cell>
   TV_HD bool near_copies_of_faces(const Cell& cell, int64_t t) const {
     constexpr double limit = core::FaceSeparationLimit<io_t, T>::value;
     if constexpr (limit > 0.0) {
       bool named[MAX_PLANES];  // the planes a vertex names: the faces
-      const int planes = cell.plane_count();
+      const int planes = cell.plane_count(), vertices = cell.vertex_count();
       for (int q = 0; q < planes; ++q) named[q] = false;
-      for (int v = 0; v < cell.vertex_count(); ++v) {
+      for (int v = 0; v < vertices; ++v) {
         int ids[3];
         if (!cell.vertex_planes(v, ids)) continue;
         for (int e = 0; e < 3; ++e) named[ids[e]] = true;
@@ -150,18 +151,27 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
       const core::Vec3<T> seed = {T(points[3 * cell_id]), T(points[3 * cell_id + 1]), T(points[3 * cell_id + 2])};
       const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
       const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
-      for (int q = core::kBoxPlanes; q < planes; ++q) {  // the box's planes 0-5 may be unwritten
-        if (!named[q]) continue;
-        const core::Plane<T> p = cell.plane(q);
-        const core::Vec3<T> r = {-p.normal.x, -p.normal.y, -p.normal.z};
-        const T reach2 = T(limit * limit) * core::dot(r, r);
-        for (int32_t n = 0; n < k; ++n) {
-          const int32_t j = row[n * stride];
-          if (j < 0) break;
-          const core::Vec3<T> d = {T(points[3 * j]) - seed.x - r.x, T(points[3 * j + 1]) - seed.y - r.y,
-                                   T(points[3 * j + 2]) - seed.z - r.z};
+      for (int32_t n = 0; n < k; ++n) {
+        const int32_t j = row[n * stride];
+        if (j < 0) break;
+        const core::Vec3<T> rj = {T(points[3 * j]) - seed.x, T(points[3 * j + 1]) - seed.y,
+                                  T(points[3 * j + 2]) - seed.z};
+        bool near = false, face = false;
+        for (int q = core::kBoxPlanes; q < planes; ++q) {  // the box's planes 0-5 may be unwritten
+          if (!named[q]) continue;
+          const core::Plane<T> p = cell.plane(q);
+          const core::Vec3<T> d = {rj.x + p.normal.x, rj.y + p.normal.y, rj.z + p.normal.z};  // r_j - r_q
           const T d2 = core::dot(d, d);
-          if (d2 > T(0) && d2 <= reach2) return true;
+          face = face || d2 == T(0);
+          near = near || (d2 > T(0) && d2 <= T(limit * limit) * core::dot(p.normal, p.normal));
+        }
+        if (!near || face) continue;
+        const T rj2 = core::dot(rj, rj);
+        const core::Plane<T> pj = core::bisector_plane(rj, rj2);
+        const T band = T(core::FaceBandMargin) * tolerance * rj2;
+        for (int v = 0; v < vertices; ++v) {
+          int ids[3];
+          if (cell.vertex_planes(v, ids) && core::dot(pj.normal, cell.vertex(v)) + pj.offset < band) return true;
         }
       }
     }
