@@ -82,7 +82,7 @@ for step in "${@:-cudatests}"; do
         --seed ${FUZZ_SEED:-1} --max-n ${FUZZ_MAX_N:-1000000} --sample ${FUZZ_SAMPLE:-4} --workers ${FUZZ_WORKERS:-12} --grace ${FUZZ_GRACE:-60} \
         --compare-max-n ${FUZZ_COMPARE_MAX_N:-5000} --time-budget ${FUZZ_SECONDS:-0} --json "$OUT/fuzz.json" 2>&1 \
         | tail -80 > "$OUT/fuzz.log"; tail -40 "$OUT/fuzz.log"
-      cat "$OUT"/fuzz.json.worker*.log > "$OUT/fuzz_cases.log" 2>/dev/null; rm -f "$OUT"/fuzz.json.worker*  # few files come back
+      cat "$OUT"/fuzz.json.worker*.log > "$OUT/fuzz_cases.log" 2>/dev/null; rm -f "$OUT"/fuzz.json.worker* "$OUT"/fuzz.json.next  # few files come back
       grep -q "^fuzz: OK" "$OUT/fuzz.log" || status=1 ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,

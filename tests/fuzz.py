@@ -57,7 +57,9 @@ volumes did not sum to its box), an unexpected exception was raised, or a
 case ran past --case-timeout (the campaign stops there). ``--time-budget S``
 starts no case after S seconds, so that a campaign fits a bounded call (the
 summary counts the cases that ran). ``--workers W`` runs the cases in W
-processes (case I of the range in process I mod W) and reports them as one.
+processes, each claiming the next case of the range when it is free (so a
+budgeted campaign runs a prefix of the range, every kind in turn), and
+reports them as one.
 """
 from __future__ import annotations
 
@@ -714,9 +716,34 @@ def merge_reports(reports: Sequence[Dict]) -> Report:
     return merged
 
 
+class ClaimedCases:
+    """The cases of `indices` that this process claims, in order, from a
+    counter file the workers share (the next position to run): a worker takes
+    the next case when it finishes one, so a time budget cuts the range at
+    one place rather than each worker's share at its own."""
+
+    def __init__(self, indices: Sequence[int], counter: str):
+        self.indices, self.counter = list(indices), counter
+
+    def __iter__(self):
+        import fcntl
+
+        while True:
+            with open(self.counter, "r+") as f:
+                fcntl.flock(f, fcntl.LOCK_EX)
+                position = int(f.read() or 0)
+                f.seek(0)
+                f.write(str(position + 1))
+                f.truncate()
+            if position >= len(self.indices):
+                return
+            yield self.indices[position]
+
+
 def run_workers(args, argv: List[str]) -> int:
     """--workers W: W processes (this script with --worker w), each with its
-    share of the CPU's threads, on CUDA the GPUs in turn, and its case lines
+    share of the CPU's threads, on CUDA the GPUs in turn, claiming cases from
+    one counter (ClaimedCases), and its case lines
     in <json>.worker<w>.log (or the temporary folder's); one summary and
     report for all."""
     import subprocess
@@ -726,12 +753,14 @@ def run_workers(args, argv: List[str]) -> int:
     threads = str(max(1, (os.cpu_count() or 1) // args.workers))
     env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads)
     gpus = torch.cuda.device_count() if args.device == "cuda" else 0
+    with open(f"{base}.next", "w") as f:  # ClaimedCases' counter
+        f.write("0")
     children = []
     for w in range(args.workers):
         if gpus > 1:
             env = dict(env, CUDA_VISIBLE_DEVICES=str(w % gpus))
         command = [sys.executable, os.path.abspath(__file__), *argv, "--worker", str(w),
-                   "--json", f"{base}.worker{w}"]
+                   "--json", f"{base}.worker{w}", "--claim", f"{base}.next"]
         log = open(f"{base}.worker{w}.log", "w")
         children.append((subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log))
     # Past the time budget and --grace more, a worker still in a case is
@@ -794,10 +823,11 @@ def main(argv=None) -> int:
     parser.add_argument("--case-timeout", type=float, default=600.0,
                         help="stop the campaign, counting a timeout, when a case runs longer (seconds; 0: never)")
     parser.add_argument("--workers", type=int, default=1,
-                        help="run the cases in this many processes (case i in process i %% workers), one report")
+                        help="run the cases in this many processes (each claims the next case when free), one report")
     parser.add_argument("--grace", type=float, default=60.0,
                         help="--workers with --time-budget: stop a worker this long past the budget (seconds)")
-    parser.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)  # this process's share
+    parser.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)  # this process's number
+    parser.add_argument("--claim", default=None, help=argparse.SUPPRESS)  # the workers' counter (ClaimedCases)
     args = parser.parse_args(argv)
     if args.workers > 1 and args.worker is None:
         return run_workers(args, sys.argv[1:] if argv is None else list(argv))
@@ -812,8 +842,8 @@ def main(argv=None) -> int:
                         graph_max_n=args.graph_max_n,
                         out=None if args.quiet else sys.stdout)
     indices = args.case if args.case is not None else range(args.start, args.start + args.cases)
-    if args.worker is not None:
-        indices = [index for position, index in enumerate(indices) if position % args.workers == args.worker]
+    if args.claim is not None:
+        indices = ClaimedCases(indices, args.claim)
 
     def finish():
         print(summary(campaign.report), flush=True)

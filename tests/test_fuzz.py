@@ -237,3 +237,15 @@ def test_workers_report_as_one_campaign(tmp_path):
     alone = fuzz.run_campaign(CI_SEED, range(6), max_n=300)
     assert merged["counts"] == alone.counts
     assert merged["per_kind"] == alone.per_kind
+
+
+def test_workers_claim_each_case_once_in_order(tmp_path):
+    """ClaimedCases: processes sharing a counter take the range's cases in
+    order, each once, whichever asks next (a budget cuts the range at one place)."""
+    counter = tmp_path / "next"
+    counter.write_text("0")
+    first = iter(fuzz.ClaimedCases(range(10, 17), str(counter)))
+    second = iter(fuzz.ClaimedCases(range(10, 17), str(counter)))
+    taken = [next(first), next(second), next(second), next(first)]
+    taken += list(second) + list(first)
+    assert taken == list(range(10, 17))
