@@ -125,11 +125,58 @@ TV_HD void add_triangle_moments(T s, Vec3<T> p, Vec3<T> q, T (&second)[6], Vec3<
   third = third + s * ((T(3) * pp + qq + T(2) * pq) * p + (T(3) * qq + pp + T(2) * pq) * q);
 }
 
+// Each plane's vertices of a cell with at most kVertices vertices (and
+// fewer than 256 planes), as lists in ascending vertex order: link 3 t + e
+// names vertex t, its plane e; for_each_face then visits each face's
+// vertices alone rather than every vertex for every plane.
+template <int kPlanes, int kVertices>
+struct VerticesByPlane {
+  static constexpr uint16_t kEnd = 0xffff;
+  static_assert(3 * kVertices < kEnd, "links are 16 bits");
+  uint16_t first[kPlanes];
+  uint16_t next[3 * kVertices];
+
+  template <typename Cell>
+  TV_HD explicit VerticesByPlane(const Cell& cell) {
+    const int planes = cell.plane_count();
+    for (int q = 0; q < planes; ++q) first[q] = kEnd;
+    for (int t = cell.vertex_count() - 1; t >= 0; --t) {  // pushed in front: ascending
+      int ids[3];
+      if (!cell.vertex_planes(t, ids)) continue;
+      for (int e = 0; e < 3; ++e) {
+        next[3 * t + e] = first[ids[e]];
+        first[ids[e]] = static_cast<uint16_t>(3 * t + e);
+      }
+    }
+  }
+  // visit(t, e) for each vertex t on plane q, in ascending order.
+  template <typename Visit>
+  TV_HD void on_plane(int q, Visit&& visit) const {
+    for (uint16_t link = first[q]; link != kEnd; link = next[link]) visit(link / 3, link % 3);
+  }
+};
+
+// A cell's vertices on plane q by a scan of them all (any cell).
+struct ScanVertices {
+  template <typename Cell, typename Visit>
+  TV_HD static void on_plane(const Cell& cell, int q, Visit&& visit) {
+    const int vertices = cell.vertex_count();
+    for (int t = 0; t < vertices; ++t) {
+      int ids[3];
+      if (!cell.vertex_planes(t, ids)) continue;
+      const int e = ids[0] == q ? 0 : (ids[1] == q ? 1 : (ids[2] == q ? 2 : -1));
+      if (e >= 0) visit(t, e);
+    }
+  }
+};
+
 // The face of plane q of `cell`, if some vertex lies on it and its area is
 // above the floor (FaceAreaFloor). `Cell` gives plane_count(), plane(q),
-// vertex_count(), vertex(t) and vertex_planes(t, ids) (false: a free slot).
-template <bool kMoments, typename Cell, typename T = typename Cell::Scalar>
-TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
+// vertex_count(), vertex(t) and vertex_planes(t, ids) (false: a free slot);
+// on_plane(q, visit) calls visit(t, e) for the vertices t on plane q (its
+// e-th plane), in ascending order.
+template <bool kMoments, typename Cell, typename OnPlane, typename T = typename Cell::Scalar>
+TV_HD bool face_of_plane(const Cell& cell, int q, OnPlane&& on_plane, Face<T>& face) {
   Plane<T> p;       // loaded at the face's first vertex: a plane no vertex names may be unwritten
   Vec3<T> apex;     // the face's first vertex: the triangles' common corner
   Vec3<T> outward;  // planes keep the seed's side
@@ -141,12 +188,9 @@ TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
   T second[6] = {T(0), T(0), T(0), T(0), T(0), T(0)};
   Vec3<T> third = {T(0), T(0), T(0)};
   bool on_face = false;
-  const int vertices = cell.vertex_count();
-  for (int t = 0; t < vertices; ++t) {
+  on_plane(q, [&](int t, int e) {
     int ids[3];
-    if (!cell.vertex_planes(t, ids)) continue;
-    const int e = ids[0] == q ? 0 : (ids[1] == q ? 1 : (ids[2] == q ? 2 : -1));
-    if (e < 0) continue;
+    cell.vertex_planes(t, ids);
     const Vec3<T> v = cell.vertex(t);
     if (!on_face) {
       p = cell.plane(q);
@@ -173,7 +217,7 @@ TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
       add_triangle_moments(a, next_foot, to_v, second, third);
       add_triangle_moments(-b, previous_foot, to_v, second, third);
     }
-  }
+  });
   if (!on_face) return false;
   face.area = T(0.5) * twice_area * inverse_length(dot(p.normal, p.normal));
   if (!(face.area > T(FaceAreaFloor<T>::value) * reach2)) return false;  // NaN too
@@ -206,8 +250,8 @@ TV_HD bool face_of_plane(const Cell& cell, int q, Face<T>& face) {
 // a wall, or kNoFace); emit(slot, target, face) is called for each, `slot`
 // the face's rank among the cell's neighbour faces (in plane order; -1 for a
 // wall). Returns the number of neighbour faces, in every lane.
-template <bool kMoments, typename Cell, typename TargetOf, typename Emit>
-TV_HD int for_each_face(const Cell& cell, TargetOf&& target_of, Emit&& emit) {
+template <bool kMoments, typename Cell, typename OnPlane, typename TargetOf, typename Emit>
+TV_HD int for_each_face_on(const Cell& cell, OnPlane&& on_plane, TargetOf&& target_of, Emit&& emit) {
   using T = typename Cell::Scalar;
   const typename Cell::Lanes lanes = cell.group();
   constexpr int kLanes = Cell::Lanes::kCount;
@@ -217,13 +261,28 @@ TV_HD int for_each_face(const Cell& cell, TargetOf&& target_of, Emit&& emit) {
     const int q = base + lanes.index();
     Face<T> face;
     int32_t target = kNoFace;
-    if (q < planes && face_of_plane<kMoments>(cell, q, face)) target = target_of(q, cell.plane(q));
+    if (q < planes && face_of_plane<kMoments>(cell, q, on_plane, face)) target = target_of(q, cell.plane(q));
     const bool neighbor_face = target >= 0;
     const uint32_t word = lanes.ballot(neighbor_face);
     if (target != kNoFace) emit(neighbor_face ? count + bit_count(word & lanes.below()) : -1, target, face);
     count += bit_count(word);
   }
   return count;
+}
+
+// A cell of one lane whose Cell::kIndexedVertices bounds its vertices
+// (nonzero) lists each plane's vertices first (VerticesByPlane); the
+// others scan them for every plane.
+template <bool kMoments, typename Cell, typename TargetOf, typename Emit>
+TV_HD int for_each_face(const Cell& cell, TargetOf&& target_of, Emit&& emit) {
+  if constexpr (Cell::Lanes::kCount == 1 && Cell::kIndexedVertices > 0) {
+    const VerticesByPlane<Cell::kMaxBisectors + kBoxPlanes, Cell::kIndexedVertices> index(cell);
+    const auto on_plane = [&](int q, auto&& visit) { index.on_plane(q, visit); };
+    return for_each_face_on<kMoments>(cell, on_plane, target_of, emit);
+  } else {
+    const auto on_plane = [&](int q, auto&& visit) { ScanVertices::on_plane(cell, q, visit); };
+    return for_each_face_on<kMoments>(cell, on_plane, target_of, emit);
+  }
 }
 
 }  // namespace core

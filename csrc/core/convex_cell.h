@@ -757,6 +757,9 @@ struct ConvexCell {
   }
   TV_HD int plane_count() const { return num_planes; }
   static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;
+  // for_each_face's per-plane vertex lists (VerticesByPlane) for the device
+  // tiers; 0: the host's largest (on the heap) scan instead.
+  static constexpr int kIndexedVertices = MAX_PLANES <= 255 ? MAX_TRIANGLES : 0;
   // Whether the bisector of the neighbour at r is among the cell's planes. A
   // second clip by it is not a no-op: its own vertices, rounded, may fall
   // outside it, and the new ones would meet it twice (a NaN vertex).

@@ -115,6 +115,7 @@ struct CooperativeCell {
   TV_HD int plane_count() const { return num_planes; }
   TV_HD Plane<T> plane(int q) const { return a.plane[q]; }
   static constexpr int kMaxBisectors = MAX_PLANES - kBoxPlanes;
+  static constexpr int kIndexedVertices = 0;  // for_each_face scans the vertices (lanes share them)
   TV_HD Vec3<T> bisector_neighbor(int q) const {
     const Vec3<T> normal = a.plane[q].normal;
     return {-normal.x, -normal.y, -normal.z};

@@ -43,6 +43,7 @@ class UnboundedCell {
   Lanes group() const { return {}; }
 
   // ConvexCell's accessors for for_each_face (vertex_planes: false for a free slot).
+  static constexpr int kIndexedVertices = 0;  // no bound: for_each_face scans the vertices
   int plane_count() const { return int(planes_.size()); }
   Plane<DoubleDouble> plane(int q) const { return planes_[q]; }
   int vertex_count() const { return int(triangles_.size()); }

@@ -135,6 +135,8 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
   // within core::FaceSeparationLimit of a face's neighbour q (relative to
   // q's distance) and its bisector within core::FaceBandMargin tolerance
   // bands of a vertex: its face may have been dropped within the band.
+  // Such a pair has |r_j|^2 within 2.5 x the limit of |r_q|^2: the faces,
+  // sorted by |r_q|^2, are swept beside the list (sorted by distance).
   template <typename Cell>
   TV_HD bool near_copies_of_faces(const Cell& cell, int64_t t) const {
     constexpr double limit = core::FaceSeparationLimit<io_t, T>::value;
@@ -147,26 +149,43 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
         if (!cell.vertex_planes(v, ids)) continue;
         for (int e = 0; e < 3; ++e) named[ids[e]] = true;
       }
+      T face_r2[MAX_PLANES];  // the bisector faces' |r_q|^2, ascending (insertion: nearly sorted already)
+      int face_plane[MAX_PLANES];
+      int faces = 0;
+      for (int q = core::kBoxPlanes; q < planes; ++q) {  // the box's planes 0-5 may be unwritten
+        if (!named[q]) continue;
+        const core::Vec3<T> normal = cell.plane(q).normal;
+        const T r2 = core::dot(normal, normal);
+        int at = faces++;
+        for (; at > 0 && face_r2[at - 1] > r2; --at) {
+          face_r2[at] = face_r2[at - 1];
+          face_plane[at] = face_plane[at - 1];
+        }
+        face_r2[at] = r2;
+        face_plane[at] = q;
+      }
       const int32_t cell_id = cells[t];
       const core::Vec3<T> seed = {T(points[3 * cell_id]), T(points[3 * cell_id + 1]), T(points[3 * cell_id + 2])};
       const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
       const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
-      for (int32_t n = 0; n < k; ++n) {
+      constexpr T window = T(2.5 * limit);
+      int low = 0;  // the first face with |r_q|^2 >= |r_j|^2 (1 - window)
+      for (int32_t n = 0; n < k && low < faces; ++n) {
         const int32_t j = row[n * stride];
         if (j < 0) break;
         const core::Vec3<T> rj = {T(points[3 * j]) - seed.x, T(points[3 * j + 1]) - seed.y,
                                   T(points[3 * j + 2]) - seed.z};
+        const T rj2 = core::dot(rj, rj);
+        while (low < faces && face_r2[low] < rj2 * (T(1) - window)) ++low;
         bool near = false, face = false;
-        for (int q = core::kBoxPlanes; q < planes; ++q) {  // the box's planes 0-5 may be unwritten
-          if (!named[q]) continue;
-          const core::Plane<T> p = cell.plane(q);
-          const core::Vec3<T> d = {rj.x + p.normal.x, rj.y + p.normal.y, rj.z + p.normal.z};  // r_j - r_q
+        for (int m = low; m < faces && face_r2[m] <= rj2 * (T(1) + window); ++m) {
+          const core::Vec3<T> normal = cell.plane(face_plane[m]).normal;
+          const core::Vec3<T> d = {rj.x + normal.x, rj.y + normal.y, rj.z + normal.z};  // r_j - r_q
           const T d2 = core::dot(d, d);
           face = face || d2 == T(0);
-          near = near || (d2 > T(0) && d2 <= T(limit * limit) * core::dot(p.normal, p.normal));
+          near = near || (d2 > T(0) && d2 <= T(limit * limit) * face_r2[m]);
         }
         if (!near || face) continue;
-        const T rj2 = core::dot(rj, rj);
         const core::Plane<T> pj = core::bisector_plane(rj, rj2);
         const T band = T(core::FaceBandMargin) * tolerance * rj2;
         for (int v = 0; v < vertices; ++v) {
@@ -228,15 +247,23 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     const core::Vec3<T> hi = core::Vec3<T>{T(corners[3]), T(corners[4]), T(corners[5])} - seed;
     const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
     const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
+    // The planes follow the list's order but for the start's: each search
+    // starts after the last match and wraps around.
+    int32_t listed = -1, cursor = 0;  // the list's length (-1 padding after), found at the first search
     const auto target_of = [&](int, const core::Plane<T>& p) -> int32_t {
       const int wall = core::wall_of(p, lo, hi);
       if (wall >= 0) return core::wall_target(wall);
       const core::Vec3<T> r = {-p.normal.x, -p.normal.y, -p.normal.z};  // bisector_plane's normal
-      for (int32_t n = 0; n < k; ++n) {
+      if (listed < 0) {
+        listed = 0;
+        while (listed < k && row[listed * stride] >= 0) ++listed;
+      }
+      for (int32_t step = 0; step < listed; ++step) {
+        const int32_t n = cursor + step < listed ? cursor + step : cursor + step - listed;
         const int32_t j = row[n * stride];
-        if (j < 0) break;
         if (T(points[3 * j]) - seed.x == r.x && T(points[3 * j + 1]) - seed.y == r.y &&
             T(points[3 * j + 2]) - seed.z == r.z) {
+          cursor = n + 1 < listed ? n + 1 : 0;
           return j;
         }
       }
