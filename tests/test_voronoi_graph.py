@@ -144,6 +144,20 @@ def test_duplicates_have_no_edges(device, dtype, gen):
     assert bool((graph.wall_area[200:] == 0).all())
 
 
+def test_faces_one_cell_found_kept_both_ways(device):
+    """A lattice jittered by 1e-12: its diagonal faces are rounding-sized,
+    and a cell retried in double-double (a lower area floor) keeps some that
+    its float64 neighbour drops. A face one cell found is kept in both
+    directions with that cell's values, and every cell still closes."""
+    gen = torch.Generator().manual_seed(5)
+    lattice = torch.stack(torch.meshgrid(*[torch.arange(10.0) / 10 + 0.05] * 3, indexing="ij"), -1).reshape(-1, 3)
+    points = (lattice.double() + 1e-12 * torch.randn(lattice.shape, generator=gen, dtype=torch.float64)).to(device)
+    graph = torchvor.voronoi_graph(points, UNIT)
+    check_structure(graph, points)
+    check_closure(graph, points, torch.float64)
+    assert int((graph.area < 1e-22).sum()) > 0  # the rounding-sized faces are there
+
+
 def test_batch(device, dtype, gen):
     sizes = [150, 0, 1, 120]
     points = rand(sum(sizes), gen, dtype, device)

@@ -16,12 +16,12 @@ namespace ops {
 using GraphOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
                                 at::Tensor, at::Tensor, at::Tensor>;
 
-// Directed faces: edge j -> i from cell i's passes; per edge `area` (E,)
-// and `values` (E, C), the face's other columns (centroid, moments).
+// The graph's edges j -> i, sorted by i then j, every face both ways.
 struct Edges {
-  at::Tensor key;     // (E,) int64: i * N + j
-  at::Tensor area;    // (E,)
-  at::Tensor values;  // (E, C)
+  at::Tensor edge_index;  // (2, E) int64: row 0 the neighbour j, row 1 the cell i
+  at::Tensor area;        // (E,)
+  at::Tensor centroid;    // (E, 3)
+  at::Tensor moments;     // (E, 9), or (0, 9) without moments
 };
 
 // Each cell row r's faces [first[r], first[r] + count[r]): the edges' cell
@@ -87,17 +87,51 @@ struct ReverseEdgeFunctor {
   }
 };
 
+// Edge e's values made symmetric with its reverse r (where one exists): the
+// mean of the two cells' area and moments, their centroids weighted by area;
+// written to the outputs with the edge's rows (products rounded alone, as
+// by separate tensor operations, on both backends).
+template <typename io_t>
+struct SymmetricEdgeFunctor {
+  const io_t* sorted;  // (E, columns): area, centroid, moments, each cell's own view
+  int64_t columns;
+  const int64_t* reverse;
+  const int32_t* cell_row;
+  const int32_t* neighbor_row;
+  int64_t edges;
+  int64_t* edge_index;  // (2, E)
+  io_t* area;           // (E,)
+  io_t* centroid;       // (E, 3)
+  io_t* moments;        // (E, columns - 4), or nullptr
+
+  TV_HD void operator()(int64_t e) const {
+    const io_t* own = sorted + e * columns;
+    const io_t* other = reverse[e] >= 0 ? sorted + reverse[e] * columns : own;
+    const io_t a = own[0], b = other[0];
+    edge_index[e] = neighbor_row[e];
+    edge_index[edges + e] = cell_row[e];
+    area[e] = (a + b) * io_t(0.5);
+    for (int c = 0; c < 3; ++c) {
+      centroid[3 * e + c] = reverse[e] >= 0 ? (core::mul_rn(a, own[1 + c]) + core::mul_rn(b, other[1 + c])) / (a + b)
+                                            : own[1 + c];
+    }
+    if (moments != nullptr) {
+      for (int64_t c = 4; c < columns; ++c) moments[(columns - 4) * e + c - 4] = (own[c] + other[c]) * io_t(0.5);
+    }
+  }
+};
+
 // The faces as edges j -> i (row 0 the neighbour j, row 1 the cell i),
 // sorted by i then j, every face in both directions. Cells i and j compute
 // their shared face apart: where both found it, each direction gets the
-// mean of their areas and of their other values (the centroid weighted by
-// area); a face only one of them found (one near the area floor,
-// core::FaceAreaFloor) is kept in both directions with that cell's values.
-// `values` (E, C) holds area, centroid, moments; cell row r's faces are
-// [first[r], first[r] + count[r]).
+// mean of their areas and of their moments, and their centroids weighted by
+// area (SymmetricEdgeFunctor); a face only one of them found (one near the
+// area floor, core::FaceAreaFloor) is kept in both directions with that
+// cell's values. `values` (E, C) holds area, centroid, moments; cell row
+// r's faces are [first[r], first[r] + count[r]).
 template <typename Exec, typename io_t>
 Edges symmetric_edges(const at::Tensor& first, const at::Tensor& count, const at::Tensor& row_of_position,
-                      const at::Tensor& neighbor, const at::Tensor& values, int64_t n) {
+                      const at::Tensor& neighbor, const at::Tensor& values, int64_t n, bool moments) {
   const int64_t edges = neighbor.numel(), columns = values.size(1);
   const at::TensorOptions ints = neighbor.options().dtype(at::kInt);
   const at::Tensor cell_row = Exec::empty({edges}, ints), neighbor_row = Exec::empty({edges}, ints);
@@ -113,25 +147,26 @@ Edges symmetric_edges(const at::Tensor& first, const at::Tensor& count, const at
   Exec::for_each(edges, ReverseEdgeFunctor{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
                                            cell_row.data_ptr<int32_t>(), sorted_neighbor.data_ptr<int32_t>(),
                                            reverse.data_ptr<int64_t>()});
-  const at::Tensor matched = reverse.ge(0);
-  const at::Tensor other = sorted.index_select(0, reverse.clamp_min(0));
-  const at::Tensor a = sorted.select(1, 0), other_area = other.select(1, 0);
-  const at::Tensor total = a + other_area;
-  at::Tensor mean = (sorted + other) * 0.5;  // area and moments; the centroid by area:
-  mean.slice(1, 1, 4).copy_((a.unsqueeze(1) * sorted.slice(1, 1, 4) + other_area.unsqueeze(1) * other.slice(1, 1, 4)) /
-                            total.unsqueeze(1));
-  const at::Tensor symmetric = at::where(matched.unsqueeze(1), mean, sorted);
-  const at::Tensor key = cell_row.to(at::kLong) * n + sorted_neighbor.to(at::kLong);
-  const at::Tensor lonely = matched.logical_not().nonzero().squeeze(1);
-  if (lonely.numel() == 0) return {key, symmetric.select(1, 0), symmetric.slice(1, 1)};
+  Edges out{Exec::empty({2, edges}, neighbor.options().dtype(at::kLong)), Exec::empty({edges}, values.options()),
+            Exec::empty({edges, 3}, values.options()),
+            Exec::empty({moments ? edges : 0, columns - 4}, values.options())};
+  Exec::for_each(edges, SymmetricEdgeFunctor<io_t>{sorted.data_ptr<io_t>(), columns, reverse.data_ptr<int64_t>(),
+                                                   cell_row.data_ptr<int32_t>(), sorted_neighbor.data_ptr<int32_t>(),
+                                                   edges, out.edge_index.data_ptr<int64_t>(), out.area.data_ptr<io_t>(),
+                                                   out.centroid.data_ptr<io_t>(),
+                                                   moments ? out.moments.data_ptr<io_t>() : nullptr});
+  const at::Tensor lonely = reverse.lt(0).nonzero().squeeze(1);
+  if (lonely.numel() == 0) return out;
   // Mirror the faces only one cell found, then merge (rare: a full sort).
-  const at::Tensor mirrored = sorted_neighbor.index_select(0, lonely).to(at::kLong) * n +
-                              cell_row.index_select(0, lonely).to(at::kLong);
-  const at::Tensor all_keys = at::cat({key, mirrored});
-  const at::Tensor all_values = at::cat({symmetric, symmetric.index_select(0, lonely)});
-  const at::Tensor order = std::get<1>(all_keys.sort());
-  const at::Tensor merged = all_values.index_select(0, order);
-  return {all_keys.index_select(0, order), merged.select(1, 0), merged.slice(1, 1)};
+  const at::Tensor key = out.edge_index[1] * n + out.edge_index[0];
+  const at::Tensor mirrored = out.edge_index[0].index_select(0, lonely) * n + out.edge_index[1].index_select(0, lonely);
+  const at::Tensor order = std::get<1>(at::cat({key, mirrored}).sort());
+  const auto merged = [&](const at::Tensor& t, int64_t dim) {
+    return at::cat({t, t.index_select(dim, lonely)}, dim).index_select(dim, order);
+  };
+  const at::Tensor edge_index =
+      at::cat({out.edge_index, out.edge_index.flip(0).index_select(1, lonely)}, 1).index_select(1, order);
+  return {edge_index, merged(out.area, 0), merged(out.centroid, 0), moments ? merged(out.moments, 0) : out.moments};
 }
 
 // The op's outputs: the cells (voronoi_cells'), then edge_index (2, E)
@@ -181,12 +216,12 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
     Edges edges;
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_graph", [&] {
       edges = symmetric_edges<Exec, scalar_t>(first_by_row, count_by_row, graph.row_of_position.contiguous(),
-                                              faces.neighbor, values, n);
+                                              faces.neighbor, values, n, moments);
     });
-    edge_index = at::stack({edges.key.remainder(n), edges.key.div(n, "floor")});
-    area = edges.area.contiguous();
-    centroid = edges.values.slice(1, 0, 3).contiguous();
-    if (moments) face_moments = edges.values.slice(1, 3, 12).contiguous();
+    edge_index = edges.edge_index;
+    area = edges.area;
+    centroid = edges.centroid;
+    if (moments) face_moments = edges.moments;
   }
   const auto& [volume, cell_centroid, second_moment, status, neighbors_needed] = cells.cells;
   return {volume,     cell_centroid, second_moment, status,   neighbors_needed,
