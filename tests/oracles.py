@@ -50,6 +50,18 @@ def pairwise_dist2(queries, points) -> np.ndarray:
     return out
 
 
+def distances_separated(points, queries, gap: float = 2e-5, radius: Optional[float] = None) -> bool:
+    """Whether each query's (and each point's) squared distances to the
+    points differ pairwise by more than `gap`, and from radius^2 where given:
+    gradcheck's finite differences (1e-6 a coordinate) then never reorder a
+    neighbour list or move a pair across the radius, where dist2 jumps."""
+    for q in (points, queries):
+        d2 = np.sort(pairwise_dist2(q, points), axis=1)
+        if np.any(np.diff(d2, axis=1) <= gap) or (radius is not None and np.any(np.abs(d2 - radius**2) <= gap)):
+            return False
+    return True
+
+
 def _np_batch(b) -> Optional[np.ndarray]:
     if b is None:
         return None
