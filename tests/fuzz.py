@@ -422,9 +422,13 @@ class Campaign:
         say how many ran). `after_case(report)` is called after each case."""
         start = time.perf_counter()
         seconds_before = self.report.seconds
-        for index in indices:
+        cases = iter(indices)  # taken only while the budget lasts (ClaimedCases: no case claimed and not run)
+        while True:
             if time_budget > 0 and time.perf_counter() - start > time_budget:
-                self.log(f"time budget of {time_budget:g} s spent: stopped before case {int(index)}")
+                self.log(f"time budget of {time_budget:g} s spent: stopped")
+                break
+            index = next(cases, None)
+            if index is None:
                 break
             self.current = (int(index), time.perf_counter())
             self.run_case(int(index))

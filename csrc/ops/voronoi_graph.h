@@ -21,7 +21,7 @@ struct Edges {
   at::Tensor edge_index;  // (2, E) int64: row 0 the neighbour j, row 1 the cell i
   at::Tensor area;        // (E,)
   at::Tensor centroid;    // (E, 3)
-  at::Tensor moments;     // (E, 9), or (0, 9) without moments
+  at::Tensor moments;     // (E, 9), or empty without moments
 };
 
 // Each cell row r's faces [first[r], first[r] + count[r]): the edges' cell
