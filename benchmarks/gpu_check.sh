@@ -113,7 +113,10 @@ import torch, torchvor, torchvor.samples
 p = torchvor.samples.white_noise(${SANITIZE_N:-100000}, device='cuda')
 torchvor.knn(p, 35); c = torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=32, on_failure='flag')
 r = torchvor.lloyd(p, ([0,0,0],[1,1,1]), iters=2)  # two lloyd_step ops
-torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(), 'lloyd', r.sum().item())
+g = torchvor.voronoi_graph(p, ([0,0,0],[1,1,1]), on_failure='flag')  # the faces' kernels
+q = p.clone().requires_grad_(); torchvor.voronoi(q, ([0,0,0],[1,1,1])).volume.sum().backward()
+torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(), 'lloyd', r.sum().item(),
+      'edges', g.edge_index.shape[1], 'grad', q.grad.abs().sum().item())
 " 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
         done
       done

@@ -757,12 +757,15 @@ def run_workers(args, argv: List[str]) -> int:
     threads = str(max(1, (os.cpu_count() or 1) // args.workers))
     env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads)
     gpus = torch.cuda.device_count() if args.device == "cuda" else 0
+    # the GPUs this process may use, as CUDA_VISIBLE_DEVICES names them (a worker sees one)
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if gpus else []
+    visible = visible if len(visible) == gpus and all(visible) else [str(g) for g in range(gpus)]
     with open(f"{base}.next", "w") as f:  # ClaimedCases' counter
         f.write("0")
     children = []
     for w in range(args.workers):
         if gpus > 1:
-            env = dict(env, CUDA_VISIBLE_DEVICES=str(w % gpus))
+            env = dict(env, CUDA_VISIBLE_DEVICES=visible[w % gpus])
         command = [sys.executable, os.path.abspath(__file__), *argv, "--worker", str(w),
                    "--json", f"{base}.worker{w}", "--claim", f"{base}.next"]
         log = open(f"{base}.worker{w}.log", "w")
@@ -791,6 +794,10 @@ def run_workers(args, argv: List[str]) -> int:
         return 1
     report = merge_reports(reports)
     print(summary(report), flush=True)
+    if args.case is None:  # where a campaign cut by its budget goes on
+        with open(f"{base}.next") as f:
+            claimed = min(int(f.read() or 0), args.cases)
+        print(f"fuzz: cases {args.start} to {args.start + claimed - 1} claimed; the next is {args.start + claimed}")
     if stopped:
         print(f"fuzz: workers {stopped} stopped {args.grace:g} s past the time budget, in a case not counted")
     if args.json:
