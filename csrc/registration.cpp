@@ -16,13 +16,15 @@ TORCH_LIBRARY(torchvor, m) {
       "radius(Tensor points, Tensor queries, float r, Tensor? batch=None, Tensor? query_batch=None, "
       "bool exclude_self=False) -> (Tensor idx, Tensor row, Tensor dist2)");
   // Voronoi cells of points clipped to box (B, 2, 3): volume (N,), centroid
-  // (N, 3), second moment about the seed (N,), status (N,) int8, and the
-  // number of nearest neighbours each cell needed (N,) int32. k: first-pass
+  // (N, 3), second moment about the seed (N,), status (N,) int8, the
+  // number of nearest neighbours each cell needed (N,) int32, and radius (N,):
+  // the largest distance from the point to a vertex of its cell, rounded up
+  // to float32 (NaN for a failed cell, 0 for a duplicate). k: first-pass
   // neighbours; None measures it on a pilot sample of cells.
   m.def(
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors_needed)");
+      "Tensor status, Tensor neighbors_needed, Tensor radius)");
   // The cells of voronoi_cells and their faces: edge_index (2, E) int64,
   // the neighbour j (row 0) across a face of cell i (row 1), sorted by i
   // then j, each face in both directions; face_area (E,), face_centroid
@@ -33,7 +35,7 @@ TORCH_LIBRARY(torchvor, m) {
   m.def(
       "voronoi_graph(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824, bool moments=False) -> (Tensor volume, Tensor centroid, "
-      "Tensor second_moment, Tensor status, Tensor neighbors_needed, Tensor edge_index, Tensor face_area, "
+      "Tensor second_moment, Tensor status, Tensor neighbors_needed, Tensor radius, Tensor edge_index, Tensor face_area, "
       "Tensor face_centroid, Tensor wall_area, Tensor face_moments)");
   // The same cells in the op's grid order (cells of nearby points in nearby
   // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
@@ -42,10 +44,10 @@ TORCH_LIBRARY(torchvor, m) {
   m.def(
       "voronoi_cells_grid_order(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors_needed, Tensor order)");
+      "Tensor status, Tensor neighbors_needed, Tensor radius, Tensor order)");
   // One Lloyd iteration on points (N, 3). The cells as voronoi_cells_grid_order
   // computes them with first-pass k (None: a pilot's, as there): volume,
-  // centroid, second_moment, status and neighbors_needed by grid position, and order
+  // centroid, second_moment, status, neighbors_needed and radius by grid position, and order
   // (N,) int64: row i is the cell of points[order[i]]. moved (N, 3), by grid
   // position: each point at its cell's centroid clamped into its box, or where
   // it was if its cell failed. measures (3,) float64 on the CPU: the sum of
@@ -58,7 +60,7 @@ TORCH_LIBRARY(torchvor, m) {
   m.def(
       "lloyd_step(Tensor points, Tensor box, Tensor? batch, int? k, int sample_stride, int histogram_bins, "
       "int memory_budget=1073741824) -> (Tensor moved, Tensor volume, Tensor centroid, Tensor second_moment, "
-      "Tensor status, Tensor neighbors_needed, Tensor order, Tensor measures, Tensor histogram)");
+      "Tensor status, Tensor neighbors_needed, Tensor radius, Tensor order, Tensor measures, Tensor histogram)");
   // The CVT energy of voronoi_cells' cells, energy () = the sum of the second
   // moments, with its gradient (N, 3) = 2 volume (points - centroid)
   // (implemented in Python: torchvor/cvt.py).

@@ -12,11 +12,16 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 
 import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(__file__))  # `import oracles`, `import voronoi_checks` from the tests
+# A fresh cache for torch.compile's tests: inductor's cached code does not
+# follow a change of an op's schema or fake kernel (a cached graph read the
+# output of an older voronoi_graph).
+os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", tempfile.mkdtemp(prefix="torchvor_inductor_"))
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

@@ -347,7 +347,8 @@ class Report:
 def replay_command(case: Case, settings: Dict, impl: Optional[str] = None) -> str:
     parts = ["python tests/fuzz.py", f"--seed {case.seed}", f"--case {case.index}",
              f"--device {settings['device']}", f"--dtype {settings['dtype']}", f"--max-n {settings['max_n']}",
-             f"--cells {impl or settings['cells']}"]
+             # the graph's checks run with every --cells (one thread cell each)
+             f"--cells {impl if impl in ('thread', 'cooperative') else settings['cells']}"]
     if settings.get("kinds"):
         parts.append("--kinds " + ",".join(settings["kinds"]))
     for name, default in (("sample", 12), ("suspects", 4)):

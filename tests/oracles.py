@@ -7,6 +7,7 @@ cells can also be computed in exact rational arithmetic (exact_cell_oracle).
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -577,3 +578,49 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     facets = sorted(chosen[t - 6] for t, ring in on_plane.items() if len(ring) >= 3 and t >= 6)
     return CellOracle(float(volume), centroid, float(second), verts, np.array(facets, dtype=np.int64),
                       seed_np.copy(), area=0.5 * area2_total, faces=faces)
+
+
+# ----------------------------------------------------------------------------- periodic boxes
+
+def periodic_cell_oracle(points, i: int, box, periodic) -> CellOracle:
+    """The Voronoi cell of points[i] (points inside box) when the box repeats
+    along the axes `periodic` (3 bools): voronoi_cell_oracle over the points
+    and their images shifted by every s in {-t..t}^3 on those axes, in a box
+    wide enough not to cut it; t grows until twice the cell's radius is
+    within t periods. Faces are keyed by (point, shift) (walls: (-1 - w, None))."""
+    pts = _np64(points)
+    lo, hi = (_np64(b).reshape(3) for b in box)
+    axes = np.array(periodic, dtype=bool)
+    period = np.where(axes, hi - lo, 0.0)
+    n = len(pts)
+    for turns in range(1, 6):
+        ranges = [range(-turns, turns + 1) if a else range(1) for a in axes]
+        shifts = np.array([s for s in itertools.product(*ranges) if any(s)], dtype=np.int64).reshape(-1, 3)
+        images = (pts[None, :, :] + shifts[:, None, :] * period).reshape(-1, 3)
+        every = np.concatenate([pts, images])
+        shift_of = np.concatenate([np.zeros((n, 3), np.int64), np.repeat(shifts, n, axis=0)])
+        wide = (lo - turns * period, hi + turns * period)
+        cell = voronoi_cell_oracle(every, i, wide)
+        reach = 2 * cell.radius
+        if cell.duplicate or not axes.any() or reach <= turns * period[axes].min():
+            break
+    if cell.faces is not None:
+        faces = {}
+        for key, value in cell.faces.items():
+            if key >= 0:
+                faces[(key % n, tuple(int(v) for v in shift_of[key]))] = value
+            else:
+                faces[(key, None)] = value
+        cell.faces = faces
+    return cell
+
+
+def minimum_image_dist2(queries, points, box, periodic) -> np.ndarray:
+    """(M, N) float64 squared distances at the nearest image along the periodic axes."""
+    q, p = _np64(queries), _np64(points)
+    lo, hi = (_np64(b).reshape(3) for b in box)
+    period = np.where(np.array(periodic, dtype=bool), hi - lo, 0.0)
+    d = p[None, :, :] - q[:, None, :]
+    safe = np.where(period > 0, period, 1.0)
+    d = d - np.where(period > 0, np.round(d / safe), 0.0) * period
+    return (d * d).sum(-1)

@@ -226,7 +226,7 @@ def test_callback_sees_the_callers_order(device):
     before = points
     for moved, cells in seen:
         reference = torchvor.voronoi(before, UNIT_BOX, k=16)
-        for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed"):
+        for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed", "radius"):
             torch.testing.assert_close(getattr(cells, name), getattr(reference, name), rtol=0, atol=1e-13)
         torch.testing.assert_close(moved, cells.centroid.clamp(0, 1), rtol=0, atol=0)
         before = moved
@@ -236,7 +236,7 @@ def test_callback_sees_the_callers_order(device):
 # ---- lloyd_step (one iteration in one op: the cells in grid order, the move, its measures) ----
 
 
-VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors_needed")
+VoronoiCellsFields = ("volume", "centroid", "second_moment", "status", "neighbors_needed", "radius")
 
 
 def expected_step(points, box, batch, k, stride, bins):
@@ -337,7 +337,7 @@ def test_lloyd_step_histogram_bins_edges(device):
 def test_lloyd_step_empty_and_bad_inputs(device):
     box = unit_box_tensor(torch.float32, device)
     empty = torch.empty(0, 3, device=device)
-    moved, volume, centroid, second_moment, status, neighbors, order, measures, histogram = (
+    moved, volume, centroid, second_moment, status, neighbors, radius, order, measures, histogram = (
         torch.ops.torchvor.lloyd_step(empty, box, None, 8, 1, 16))
     assert moved.shape == (0, 3) and order.shape == (0,) and volume.shape == (0,)
     assert measures.tolist() == [0.0, 0.0, 0.0] and histogram.tolist() == [0] * 16

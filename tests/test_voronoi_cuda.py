@@ -31,7 +31,7 @@ def test_cuda_cell_residency_changes_no_result(monkeypatch, dtype, gen, blocks_p
     monkeypatch.setenv("TORCHVOR_CELL_BLOCKS_PER_SM", blocks_per_sm)
     capped = torchvor.voronoi(points, UNIT, k=k)
     check_global(capped, points, [box_of(points, UNIT)], dtype)
-    for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed"):
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed", "radius"):
         assert torch.equal(getattr(default, name), getattr(capped, name)), name
 
 

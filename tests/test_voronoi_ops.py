@@ -77,7 +77,7 @@ def test_inverse_order_in_ranges(device, dtype, gen, monkeypatch):
     reference = torchvor.voronoi(points, UNIT, on_failure="flag")
     monkeypatch.setenv("TORCHVOR_TEST_SCATTER_BYTES", "1000")
     cells = torchvor.voronoi(points, UNIT, on_failure="flag")
-    for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed"):
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed", "radius"):
         assert torch.equal(getattr(cells, name), getattr(reference, name)), name
     check_against_oracle(cells, points, (np.zeros(3), np.ones(3)), pick_cells(points, 20, gen, np.zeros(3), np.ones(3)),
                          RTOL[dtype])

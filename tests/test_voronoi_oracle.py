@@ -202,7 +202,7 @@ def test_cooperative_knn_in_voronoi(monkeypatch, device, dtype, gen, k):
     for impl in ("thread", "cooperative"):
         monkeypatch.setenv("TORCHVOR_KNN", impl)
         results[impl] = torchvor.voronoi(points, UNIT, k=k)
-    for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed"):
+    for name in ("volume", "centroid", "second_moment", "status", "neighbors_needed", "radius"):
         assert torch.equal(getattr(results["thread"], name), getattr(results["cooperative"], name)), name
 
 

@@ -44,7 +44,7 @@ def _cvt_energy_kernel(
     because setup_context only sees inputs and outputs, and it costs three
     flops per point next to the Voronoi cells themselves.
     """
-    volume, centroid, second_moment, _status, _neighbors_needed = torch.ops.torchvor.voronoi_cells.default(
+    volume, centroid, second_moment, _status, _neighbors_needed, _radius = torch.ops.torchvor.voronoi_cells.default(
         points, box, batch, k
     )
     energy = second_moment.sum()

@@ -10,8 +10,10 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .ops import (DEFAULT_MEMORY_BUDGET, BoxLike, VoronoiCells, _box_for_call, _check_on_failure,  # loads torchvor._C
-                  _check_tensor, _no_backward, _non_differentiable, _report_failures, _voronoi_cells_fake)
+from .ops import (DEFAULT_MEMORY_BUDGET, BoxLike, PeriodicLike, VoronoiCells, _box_for_call,  # loads torchvor._C
+                  _check_on_failure, _check_points, _check_tensor, _no_backward, _non_differentiable,
+                  _report_failures, _voronoi_cells_fake)
+from . import periodic as _periodic
 
 
 class VoronoiGraph(NamedTuple):
@@ -22,8 +24,13 @@ class VoronoiGraph(NamedTuple):
         Every face appears in both directions; faces of zero area are not edges.
     area: (E,) the area of the face shared by cells i and j (the same both ways).
     centroid: (E, 3) the face's centroid (the same both ways).
-    wall_area: (N, 6) the area of cell i on the box walls -x, +x, -y, +y, -z, +z.
+    wall_area: (N, 6) the area of cell i on the box walls -x, +x, -y, +y, -z, +z
+        (zero on a periodic axis).
     cells: the :class:`VoronoiCells` of the same call.
+    shift: periodic calls only (else None): (E, 3) int8, the image of j that
+        cell i meets across the face, ``points[j] + shift * (hi - lo)``. A
+        small cloud's cell can meet several images of one point (or of its
+        own): one edge each, sorted by i, j, then shift.
     Floating outputs have the points' dtype.
     """
 
@@ -32,6 +39,7 @@ class VoronoiGraph(NamedTuple):
     centroid: torch.Tensor
     wall_area: torch.Tensor
     cells: VoronoiCells
+    shift: Optional[torch.Tensor] = None
 
 
 def voronoi_graph(
@@ -42,6 +50,7 @@ def voronoi_graph(
     k: Optional[int] = None,
     on_failure: str = "warn",
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    periodic: PeriodicLike = False,
 ) -> VoronoiGraph:
     """The Voronoi graph: every face between two cells, with its area and centroid.
 
@@ -67,6 +76,8 @@ def voronoi_graph(
         on_failure: as :func:`torchvor.voronoi`; a cell that could not be
             computed has no faces.
         memory_budget: as :func:`torchvor.voronoi`.
+        periodic: as :func:`torchvor.voronoi`; edges then carry ``shift``, and
+            face centroids lie next to cell i's point.
 
     Returns:
         :class:`VoronoiGraph`. Exact duplicates (status DUPLICATE) have no edges.
@@ -74,6 +85,15 @@ def voronoi_graph(
     """
     _check_on_failure("voronoi_graph", on_failure)
     _check_tensor(points, "points")
+    axes = _periodic.periodic_axes(periodic, "voronoi_graph")
+    if axes is not None:
+        _check_points(points, "voronoi_graph")
+        pbox = _periodic.periodic_box(points, box, batch, axes, "voronoi_graph")
+        with torch.no_grad():
+            cells, edge_index, area, centroid, wall_area, shift = _periodic.voronoi_graph(
+                points, pbox, batch, k, memory_budget)
+        _report_failures("voronoi_graph", cells, on_failure)
+        return VoronoiGraph(edge_index, area, centroid, wall_area, cells, shift)
     box_tensor = _box_for_call(points, box, batch)
     (*cells, edge_index, area, centroid, wall_area, _moments) = torch.ops.torchvor.voronoi_graph.default(
         points, box_tensor, batch, k, memory_budget)
@@ -89,6 +109,7 @@ def voronoi_laplacian(
     batch: Optional[torch.Tensor] = None,
     k: Optional[int] = None,
     on_failure: str = "warn",
+    periodic: PeriodicLike = False,
 ) -> torch.Tensor:
     """The finite-volume Laplacian of the Voronoi cells, a sparse (N, N) matrix.
 
@@ -100,15 +121,23 @@ def voronoi_laplacian(
     Divide row i by the cell's volume for the Laplacian of the field's mean.
 
     Args:
-        points, box, batch, k, on_failure: as :func:`voronoi_graph`.
+        points, box, batch, k, on_failure, periodic: as :func:`voronoi_graph`;
+            a periodic face's distance is to the image of j that i meets
+            (several images of j add up).
 
     Returns:
         (N, N) sparse COO tensor (coalesced), points' dtype and device.
     """
-    graph = voronoi_graph(points, box, batch=batch, k=k, on_failure=on_failure)
+    graph = voronoi_graph(points, box, batch=batch, k=k, on_failure=on_failure, periodic=periodic)
     source, target = graph.edge_index
     n = points.shape[0]
-    weight = graph.area / (points[source] - points[target]).norm(dim=1)
+    across = points[source] - points[target]
+    if graph.shift is not None:
+        period = _periodic.periodic_box(points, box, batch, _periodic.periodic_axes(periodic, "voronoi_laplacian"),
+                                        "voronoi_laplacian").period
+        period = period[0].expand(n, 3) if batch is None else period[batch]
+        across = across + graph.shift.to(points.dtype) * period[target]
+    weight = graph.area / across.norm(dim=1)
     diagonal = torch.zeros(n, dtype=points.dtype, device=points.device).index_add(0, target, -weight)
     rows = torch.arange(n, device=points.device)
     indices = torch.cat([torch.stack([target, source]), torch.stack([rows, rows])], dim=1)
@@ -133,18 +162,18 @@ torch.library.register_autograd("torchvor::voronoi_graph", _no_backward, setup_c
 # faces with their moments (the same cells: the passes are deterministic).
 def _cells_setup_context(ctx, inputs, output) -> None:
     points, box, batch, k, memory_budget = inputs
-    volume, centroid, _second_moment, status, neighbors_needed = output
-    ctx.mark_non_differentiable(status, neighbors_needed)
+    volume, centroid, _second_moment, status, neighbors_needed, radius = output
+    ctx.mark_non_differentiable(status, neighbors_needed, radius)
     ctx.save_for_backward(points, box, batch, volume, centroid)
     ctx.k, ctx.memory_budget = k, memory_budget
 
 
-def _cells_backward(ctx, grad_volume, grad_centroid, grad_second_moment, _grad_status, _grad_neighbors):
+def _cells_backward(ctx, grad_volume, grad_centroid, grad_second_moment, _grad_status, _grad_neighbors, _grad_radius):
     points, box, batch, volume, centroid = ctx.saved_tensors
     if not ctx.needs_input_grad[0]:
         return None, None, None, None, None
     faces = torch.ops.torchvor.voronoi_graph.default(points.detach(), box, batch, ctx.k, ctx.memory_budget, True)
-    edge_index, area, face_centroid, _wall_area, moments = faces[5:]
+    edge_index, area, face_centroid, _wall_area, moments = faces[6:]
     grad = _cell_gradients(points.detach(), volume.detach(), centroid.detach(), edge_index, area, face_centroid,
                            moments, grad_volume, grad_centroid, grad_second_moment)
     return grad.to(points.dtype), None, None, None, None

@@ -23,6 +23,7 @@ load_extension()  # torchvor._C: the op schemas and the C++/CUDA kernels, or an 
 DEFAULT_MEMORY_BUDGET = 1 << 30
 
 BoxLike = Union[torch.Tensor, Sequence]
+PeriodicLike = Union[bool, Sequence[bool], None]
 
 
 class KNN(NamedTuple):
@@ -62,6 +63,11 @@ class VoronoiCells(NamedTuple):
         cell that would need more than 256 is finished by the empty balls of
         its vertices instead (see :func:`voronoi`): 256 (its list) plus its
         Voronoi neighbours beyond the list.
+    radius: (N,) the largest distance from ``points[i]`` to a computed vertex
+        of its cell, rounded up to a float32 value: the ball of that radius
+        around the point holds the cell (up to the cell's tolerance; a sliver's
+        rounded vertex can lie a little beyond the exact cell); 0 for a
+        duplicate. Not differentiable.
     Floating outputs have the points' dtype; a cell that could not be computed
     has NaN outputs and a failure status.
     """
@@ -71,6 +77,7 @@ class VoronoiCells(NamedTuple):
     second_moment: torch.Tensor
     status: torch.Tensor
     neighbors_needed: torch.Tensor
+    radius: torch.Tensor
 
 
 def knn(
@@ -81,6 +88,8 @@ def knn(
     batch: Optional[torch.Tensor] = None,
     query_batch: Optional[torch.Tensor] = None,
     exclude_self: Optional[bool] = None,
+    box: Optional[BoxLike] = None,
+    periodic: PeriodicLike = False,
 ) -> KNN:
     """k nearest neighbours of 3D points on a uniform grid (paper §2).
 
@@ -95,19 +104,35 @@ def knn(
         exclude_self: when ``queries`` is None, whether query i skips point i.
             Default True (a point is not its own neighbour; exact duplicates of
             it still are, at distance 0). Must be False/None when queries are given.
+        box: the box whose edges are the periods, with ``periodic`` (as
+            :func:`voronoi` takes it); unused otherwise.
+        periodic: ``True`` or three bools (x, y, z): distances wrap around the
+            box along those axes, and each point counts once, at its nearest
+            image (the minimum-image convention; a point is never its own
+            neighbour through an image). Float32 points are then computed in
+            float64 (:mod:`torchvor.periodic`).
 
     Returns:
         :class:`KNN` ``(dist2, idx)`` of shape (M, k), sorted by distance.
     """
+    own = queries is None
     queries, query_batch, exclude_self = _queries_of("knn", points, queries, batch, query_batch, exclude_self)
     if not isinstance(k, int) or isinstance(k, bool):
         raise TypeError(f"torchvor.knn: k must be an int, got {type(k).__name__}")
+    axes = _periodic.periodic_axes(periodic, "knn")
+    if axes is not None:
+        if k < 1:
+            raise ValueError(f"torchvor.knn: k must be at least 1, got {k}")
+        _check_points(points, "knn")
+        pbox = _periodic.periodic_box(points, box, batch, axes, "knn")
+        return _periodic.knn(points, k, None if own else queries, batch, query_batch, exclude_self, pbox)
     dist2, idx = torch.ops.torchvor.knn.default(points, queries, k, batch, query_batch, exclude_self)
     return KNN(dist2, idx)
 
 
 def knn_graph(
-    points: torch.Tensor, k: int, batch: Optional[torch.Tensor] = None, loop: bool = False
+    points: torch.Tensor, k: int, batch: Optional[torch.Tensor] = None, loop: bool = False, *,
+    box: Optional[BoxLike] = None, periodic: PeriodicLike = False,
 ) -> torch.Tensor:
     """k-nearest-neighbour graph in PyG's layout.
 
@@ -116,13 +141,14 @@ def knn_graph(
         k: neighbours per point.
         batch: optional (N,) int64 sorted batch vector.
         loop: include the self-loop i -> i (counted among the k).
+        box, periodic: as :func:`knn` (a periodic edge joins i to the nearest image of j).
 
     Returns:
         edge_index: (2, E) int64 with ``edge_index[0]`` the neighbour (source) and
         ``edge_index[1]`` the centre (target), E = N * k when every cloud has more
         than k points (missing neighbours are dropped, so E can be smaller).
     """
-    result = knn(points, k, batch=batch, exclude_self=not loop)
+    result = knn(points, k, batch=batch, exclude_self=not loop, box=box, periodic=periodic)
     n = points.shape[0]
     target = torch.arange(n, device=points.device).repeat_interleave(k)
     return torch.ops.torchvor.drop_missing_edges.default(torch.stack([result.idx.reshape(-1), target]))
@@ -227,6 +253,7 @@ def voronoi(
     k: Optional[int] = None,
     on_failure: str = "warn",
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    periodic: PeriodicLike = False,
 ) -> VoronoiCells:
     """Volume, centroid and second moment of every 3D Voronoi cell, clipped to a box.
 
@@ -281,6 +308,14 @@ def voronoi(
             neighbours a cell. Fewer chunks are a little faster (each ends in
             a tail of idle GPU); the budget bounds the neighbour buffer, not
             the cells' other working memory.
+        periodic: ``True`` or three bools (x, y, z): the box repeats along
+            those axes (its edges are the periods; a box is required). Cells
+            wrap around: volumes sum to the box's, there are no walls on a
+            periodic axis, and each centroid is given next to its point (it
+            may lie outside the box). Points outside the box along a periodic
+            axis are taken at their image inside. The points near the
+            periodic faces are padded with their images; float32 points are
+            computed in float64 (:mod:`torchvor.periodic`).
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,
@@ -292,6 +327,13 @@ def voronoi(
     """
     _check_on_failure("voronoi", on_failure)
     _check_tensor(points, "points")
+    axes = _periodic.periodic_axes(periodic, "voronoi")
+    if axes is not None:
+        _check_points(points, "voronoi")
+        pbox = _periodic.periodic_box(points, box, batch, axes, "voronoi")
+        cells = _periodic.voronoi(points, pbox, batch, k, memory_budget)
+        _report_failures("voronoi", cells, on_failure)
+        return cells
     box_tensor = _box_for_call(points, box, batch)
     cells = VoronoiCells(*torch.ops.torchvor.voronoi_cells.default(points, box_tensor, batch, k, memory_budget))
     _report_failures("voronoi", cells, on_failure)
@@ -362,6 +404,16 @@ def _check_tensor(value, name: str) -> None:
         raise TypeError(f"torchvor: {name} must be a torch.Tensor, got {type(value).__name__}")
 
 
+def _check_points(points: torch.Tensor, caller: str) -> None:
+    """What the ops check of points, for the periodic calls that reshape them first."""
+    if points.dim() != 2 or points.shape[1] != 3:
+        raise ValueError(f"torchvor.{caller}: points must have shape (N, 3), got {tuple(points.shape)}")
+    if points.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"torchvor.{caller}: points must be float32 or float64, got {points.dtype}")
+    if not bool(torch.isfinite(points).all()):
+        raise ValueError(f"torchvor.{caller}: points contain NaN or Inf")
+
+
 # ---- fake (meta) kernels: output shapes for torch.compile and opcheck -------------------
 
 
@@ -421,6 +473,7 @@ def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_M
         points.new_empty((n,)),
         points.new_empty((n,), dtype=torch.int8),
         points.new_empty((n,), dtype=torch.int32),
+        points.new_empty((n,)),
     )
 
 
@@ -436,3 +489,7 @@ def _lloyd_step_fake(points, box, batch, k, sample_stride, histogram_bins, memor
 def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET):
     n = points.shape[0]
     return (*_voronoi_cells_fake(points, box, batch, k, memory_budget), points.new_empty((n,), dtype=torch.int64))
+
+
+# The periodic calls (images of the points near the faces) build on the ops above.
+from . import periodic as _periodic  # noqa: E402

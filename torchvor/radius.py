@@ -10,7 +10,8 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .ops import _queries_of, knn  # loads torchvor._C
+from .ops import BoxLike, PeriodicLike, _check_points, _queries_of, knn  # loads torchvor._C
+from . import periodic as _periodic
 
 
 class Radius(NamedTuple):
@@ -36,6 +37,8 @@ def radius(
     query_batch: Optional[torch.Tensor] = None,
     max_num_neighbors: Optional[int] = None,
     exclude_self: Optional[bool] = None,
+    box: Optional[BoxLike] = None,
+    periodic: PeriodicLike = False,
 ) -> Radius:
     """Every point within distance ``r`` of each query (``|p - q| <= r``), on a uniform grid.
 
@@ -54,10 +57,14 @@ def radius(
         exclude_self: when ``queries`` is None, whether query i skips point i.
             Default True (exact duplicates of a point are still its
             neighbours, at distance 0). Must be False/None when queries are given.
+        box, periodic: as :func:`torchvor.knn`: distances wrap around the box
+            along the periodic axes, each point at most once a query, at its
+            nearest image.
 
     Returns:
         :class:`Radius` ``(edge_index, dist2)``, E edges sorted by query, then distance.
     """
+    own = queries is None
     queries, query_batch, exclude_self = _queries_of("radius", points, queries, batch, query_batch, exclude_self)
     if isinstance(r, torch.Tensor) and r.numel() == 1:
         r = r.item()
@@ -72,6 +79,14 @@ def radius(
                             f"got {type(max_num_neighbors).__name__}")
         if max_num_neighbors < 1:
             raise ValueError(f"torchvor.radius: max_num_neighbors must be at least 1, got {max_num_neighbors}")
+    axes = _periodic.periodic_axes(periodic, "radius")
+    if axes is not None:
+        _check_points(points, "radius")
+        pbox = _periodic.periodic_box(points, box, batch, axes, "radius")
+        idx, row, dist2 = _periodic.radius(points, r, None if own else queries, batch, query_batch,
+                                           max_num_neighbors, exclude_self, pbox)
+        return Radius(torch.stack([idx, row]), dist2)
+    if max_num_neighbors is not None:
         return _nearest_within(points, r, queries, batch, query_batch, max_num_neighbors, exclude_self)
     idx, row, dist2 = torch.ops.torchvor.radius.default(points, queries, r, batch, query_batch, exclude_self)
     return Radius(torch.stack([idx, row]), dist2)
@@ -97,6 +112,9 @@ def radius_graph(
     batch: Optional[torch.Tensor] = None,
     loop: bool = False,
     max_num_neighbors: Optional[int] = None,
+    *,
+    box: Optional[BoxLike] = None,
+    periodic: PeriodicLike = False,
 ) -> torch.Tensor:
     """The radius graph in PyG's layout: an edge j -> i for every pair within distance ``r``.
 
@@ -107,13 +125,16 @@ def radius_graph(
         loop: include the self-loops i -> i.
         max_num_neighbors: keep at most this many neighbours a point, its
             nearest; ``None`` (default) keeps every one.
+        box, periodic: as :func:`torchvor.knn` (a periodic edge joins i to the
+            nearest image of j).
 
     Returns:
         edge_index: (2, E) int64, ``edge_index[0]`` the neighbour j (source),
         ``edge_index[1]`` the centre i (target), sorted by centre, then
         distance, then neighbour. Without a cap every pair appears in both directions.
     """
-    return radius(points, r, batch=batch, max_num_neighbors=max_num_neighbors, exclude_self=not loop).edge_index
+    return radius(points, r, batch=batch, max_num_neighbors=max_num_neighbors, exclude_self=not loop,
+                  box=box, periodic=periodic).edge_index
 
 
 @torch.library.register_fake("torchvor::radius")

@@ -789,6 +789,8 @@ struct ConvexCell {
   }
 
   // Whether no neighbour this far (or farther) can cut the cell.
+  // The largest |vertex|^2 (compute_cell's radius).
+  TV_HD T largest_radius2() const { return radius2; }
   TV_HD bool security_radius_reached(T neighbor_dist2) const {
     return beyond_security_radius(neighbor_dist2, radius2, tolerance);
   }

@@ -80,6 +80,18 @@ class UnboundedCell {
     generation_ = 0u;
   }
 
+  // The largest |vertex|^2 (entries of removed or rewritten slots are
+  // dropped as they surface).
+  DoubleDouble largest_radius2() {
+    while (!by_radius_.empty()) {
+      const RadiusEntry& top = by_radius_.top();
+      const Triangle& t = triangles_[top.slot];
+      if (t.alive && t.version == top.version) return top.radius2;
+      by_radius_.pop();
+    }
+    return DoubleDouble(0.0);
+  }
+
   // Whether no neighbour this far (or farther) can cut the cell.
   bool security_radius_reached(DoubleDouble neighbor_dist2) {
     return beyond_security_radius(neighbor_dist2, largest_radius2(), tolerance_);
@@ -240,17 +252,6 @@ class UnboundedCell {
     }
   }
 
-  // The largest |vertex|^2 (entries of removed or rewritten slots are
-  // dropped as they surface).
-  DoubleDouble largest_radius2() {
-    while (!by_radius_.empty()) {
-      const RadiusEntry& top = by_radius_.top();
-      const Triangle& t = triangles_[top.slot];
-      if (t.alive && t.version == top.version) return top.radius2;
-      by_radius_.pop();
-    }
-    return DoubleDouble(0.0);
-  }
 
   // -1 outside p, 0 on it, +1 inside: exact (exact_predicates.h).
   int side(int32_t t, const Plane<DoubleDouble>& p) const {

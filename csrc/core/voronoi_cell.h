@@ -13,12 +13,13 @@ namespace core {
 // The cancellation a cell's integrals may have (sum of the absolute volumes
 // of its tetrahedra over its volume) when computed in T for outputs of type
 // io_t. The relative rounding error of the volume is about the ratio times
-// T's unit roundoff, so the limits hold it near 2e-6 for float32 outputs and
-// 1e-12 for float64 ones. White noise stays below ~7; needle cells of tight
-// clusters reach 1e9 and are recomputed in wider arithmetic. 0: no limit
-// (double-double, the last resort).
+// the vertices' unit roundoff: 2^-18 in a float thread cell's compact
+// triangles (a cell at 31 came out 1.26e-4 off), so the float limit holds it
+// near 6e-5, and 1e-12 for float64. White noise, perturbed grids and blue
+// noise stay below 8; needle cells of tight clusters reach 1e9 and are
+// recomputed in wider arithmetic. 0: no limit (double-double, the last resort).
 template <typename io_t, typename T> struct CancellationLimit { static constexpr double value = 0.0; };
-template <> struct CancellationLimit<float, float> { static constexpr double value = 32.0; };
+template <> struct CancellationLimit<float, float> { static constexpr double value = 16.0; };
 template <> struct CancellationLimit<float, double> { static constexpr double value = 1e9; };
 template <> struct CancellationLimit<double, double> { static constexpr double value = 1e4; };
 
@@ -50,7 +51,20 @@ struct CellIntegrals {
   T second_moment;     // integral over the cell of |x - seed|^2
   int8_t status;
   int32_t neighbors;   // neighbours consumed before the radius of security
+  float radius;        // the cell's largest distance from the seed to a vertex, rounded up (radius_bound)
 };
+
+// sqrt(radius2) as a float no smaller than it (NaN stays NaN): the ball
+// around the seed that holds the cell, a bound callers can certify with.
+template <typename T>
+TV_HD float radius_bound(T radius2) {
+  const double square = static_cast<double>(radius2);
+  if (!(square >= 0.0)) return NAN;
+  const double radius = sqrt_of(square);
+  float bound = static_cast<float>(radius);
+  if (static_cast<double>(bound) < radius) bound = nextafterf(bound, INFINITY);
+  return bound;
+}
 
 // A cell's neighbours as its lanes read them: lane l reads neighbour base + l
 // (the index, then the coordinates), and step n takes neighbour n from lane
@@ -214,13 +228,16 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
   // lanes of a warp meet again here and integrate together, instead of each
   // lane integrating as soon as its own loop ends while the others clip.
   if (out.status == kDuplicate) {
+    out.radius = 0.0f;
     out.volume = T(0);
     out.centroid = seed;
     out.second_moment = T(0);
     return out;
   }
+  out.radius = radius_bound(cell.largest_radius2());
   if (out.status != kSuccess) {
     const T nan = T(0) / T(0);
+    out.radius = float(nan);
     out.volume = nan;
     out.centroid = {nan, nan, nan};
     out.second_moment = nan;
@@ -242,6 +259,7 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
     // resolves: never a silent success; the caller retries in wider arithmetic.
     const T nan = T(0) / T(0);
     out.status = is_finite_value(sum) ? kIllConditioned : kBoundaryError;
+    out.radius = float(nan);
     out.volume = nan;
     out.centroid = {nan, nan, nan};
     out.second_moment = nan;

@@ -81,7 +81,8 @@ CellRecord<io_t> giant_cell(const io_t* points, int64_t n, const int64_t* batch,
   return {static_cast<io_t>(result.volume),
           {static_cast<io_t>(result.centroid.x), static_cast<io_t>(result.centroid.y),
            static_cast<io_t>(result.centroid.z)},
-          static_cast<io_t>(result.second_moment), result.neighbors, result.status, static_cast<uint16_t>(num_faces)};
+          static_cast<io_t>(result.second_moment), result.radius, result.neighbors, result.status,
+          static_cast<uint16_t>(num_faces)};
 }
 
 }  // namespace

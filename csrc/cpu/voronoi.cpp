@@ -15,13 +15,13 @@ TORCHVOR_VORONOI_FORWARD(, torchvor::cpu::CpuExec);
 namespace torchvor {
 namespace cpu {
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cpu(
+ops::CallerOutputs voronoi_cells_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
   return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, false, {}, nullptr).cells;
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_grid_order_cpu(
+ops::GridOrderOutputs voronoi_cells_grid_order_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
   const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true, {}, nullptr);

@@ -28,13 +28,13 @@ ops::VoronoiOutputs voronoi_forward_cuda(const at::Tensor& points, const at::Ten
   return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order, {}, nullptr);
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_cuda(
+ops::CallerOutputs voronoi_cells_cuda(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
   return voronoi_forward_cuda(points, box, batch, k, memory_budget, false).cells;
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> voronoi_cells_grid_order_cuda(
+ops::GridOrderOutputs voronoi_cells_grid_order_cuda(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
   const ops::VoronoiOutputs out = voronoi_forward_cuda(points, box, batch, k, memory_budget, true);

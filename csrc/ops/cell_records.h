@@ -18,7 +18,7 @@
 namespace torchvor {
 namespace ops {
 
-// One cell's outputs as one record (32 bytes in float32, 48 in float64), so
+// One cell's outputs as one record (32 bytes in float32, 64 in float64), so
 // that the gather to the caller's rows (ToRowsFunctor) reads one or two
 // memory sectors a cell instead of one an output array.
 template <typename io_t>
@@ -26,6 +26,7 @@ struct alignas(16) CellRecord {
   io_t volume;
   io_t centroid[3];
   io_t second_moment;
+  float radius;        // core::CellIntegrals::radius
   int32_t num_neighbors;
   int8_t status;
   uint16_t num_faces;  // voronoi_graph: the cell's neighbour faces (for_each_face); 0 otherwise
@@ -203,7 +204,7 @@ template <typename io_t>
 TV_HD CellRecord<io_t> not_computed_record() {
   const io_t zero = io_t(0);
   const io_t nan = zero / zero;
-  return {nan, {nan, nan, nan}, nan, 0, core::kNotComputed};
+  return {nan, {nan, nan, nan}, nan, NAN, 0, core::kNotComputed};
 }
 
 // The cells of `cells` whose status is still "not computed" get the record
@@ -233,7 +234,7 @@ struct DuplicateRecordFunctor {
 
   TV_HD void operator()(int64_t i) const {
     const int64_t p = first + i;
-    records[p] = {io_t(0), {points[3 * p], points[3 * p + 1], points[3 * p + 2]}, io_t(0), 1, core::kDuplicate};
+    records[p] = {io_t(0), {points[3 * p], points[3 * p + 1], points[3 * p + 2]}, io_t(0), 0.0f, 1, core::kDuplicate};
     status[p] = core::kDuplicate;
   }
 };
@@ -288,6 +289,7 @@ struct ToRowsFunctor {
   io_t* second_moment;  // (N,)
   int8_t* status;       // (N,)
   int32_t* num_neighbors;  // (N,)
+  io_t* radius;         // (N,)
 
   TV_HD void operator()(int64_t row) const {
     const CellRecord<io_t> record = records[position_of_row ? position_of_row[row] : row];
@@ -298,13 +300,15 @@ struct ToRowsFunctor {
     second_moment[row] = record.second_moment;
     status[row] = record.status;
     num_neighbors[row] = record.num_neighbors;
+    radius[row] = static_cast<io_t>(record.radius);
   }
 };
 
-using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+using CallerOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+using GridOrderOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 
-// What the ops return: the five outputs (volume, centroid, second_moment,
-// status, num_neighbors), in the caller's rows, or (grid_order) by grid
+// What the ops return: the six outputs (volume, centroid, second_moment,
+// status, num_neighbors, radius), in the caller's rows, or (grid_order) by grid
 // position with `order`, (N,) int64, the caller's row of each position.
 struct VoronoiOutputs {
   CallerOutputs cells;
@@ -335,6 +339,7 @@ VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions
   const at::Tensor second_moment = Exec::empty({n}, options);
   const at::Tensor status = Exec::empty({n}, options.dtype(at::kChar));
   const at::Tensor num_neighbors = Exec::empty({n}, options.dtype(at::kInt));
+  const at::Tensor radius = Exec::empty({n}, options);
   VoronoiOutputs out;
   if (grid_order) {
     out.order = n > 0 ? in.row_of_position.to(at::kLong) : Exec::empty({0}, options.dtype(at::kLong));
@@ -348,9 +353,9 @@ VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions
     Exec::for_each(n, ToRowsFunctor<io_t>{grid_order ? nullptr : position_of_row.data_ptr<int32_t>(),
                                           in.data<io_t>(), volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),
                                           second_moment.data_ptr<io_t>(), status.data_ptr<int8_t>(),
-                                          num_neighbors.data_ptr<int32_t>()});
+                                          num_neighbors.data_ptr<int32_t>(), radius.data_ptr<io_t>()});
   }
-  out.cells = {volume, centroid, second_moment, status, num_neighbors};
+  out.cells = {volume, centroid, second_moment, status, num_neighbors, radius};
   return out;
 }
 

@@ -227,7 +227,8 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     records[i] = {static_cast<io_t>(out.volume),
                   {static_cast<io_t>(out.centroid.x), static_cast<io_t>(out.centroid.y),
                    static_cast<io_t>(out.centroid.z)},
-                  static_cast<io_t>(out.second_moment), out.neighbors, out.status, static_cast<uint16_t>(num_faces)};
+                  static_cast<io_t>(out.second_moment), out.radius, out.neighbors, out.status,
+                  static_cast<uint16_t>(num_faces)};
     status[i] = out.status;
   }
 

@@ -79,7 +79,7 @@ struct StridedHistogramFunctor {
 };
 
 using LloydStepOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
-                                    at::Tensor, at::Tensor>;
+                                    at::Tensor, at::Tensor, at::Tensor>;
 
 // torchvor::lloyd_step (registration.cpp has the schema). The measures
 // and the histogram are read from the device once, with the passes' last
@@ -136,8 +136,8 @@ LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tenso
   measures.slice(0, 0, 2).copy_(read.slice(0, 0, 2));
   measures.data_ptr<double>()[2] = static_cast<double>(cells.first_pass_k);
   const at::Tensor histogram = read.slice(0, 2).view(at::kInt).slice(0, 0, histogram_bins).clone();
-  const auto& [volume, centroid, second_moment, status, neighbors] = cells.cells;
-  return {moved, volume, centroid, second_moment, status, neighbors, cells.order, measures, histogram};
+  const auto& [volume, centroid, second_moment, status, neighbors, radius] = cells.cells;
+  return {moved, volume, centroid, second_moment, status, neighbors, radius, cells.order, measures, histogram};
 }
 
 }  // namespace ops

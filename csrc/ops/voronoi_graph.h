@@ -14,7 +14,7 @@ namespace torchvor {
 namespace ops {
 
 using GraphOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
-                                at::Tensor, at::Tensor, at::Tensor>;
+                                at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 
 // The graph's edges j -> i, sorted by i then j, every face both ways.
 struct Edges {
@@ -188,10 +188,11 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
     as_float(std::get<0>(out));
     as_float(std::get<1>(out));
     as_float(std::get<2>(out));
-    as_float(std::get<6>(out));
+    as_float(std::get<5>(out));  // a float bound already (core::radius_bound): exact
     as_float(std::get<7>(out));
     as_float(std::get<8>(out));
     as_float(std::get<9>(out));
+    as_float(std::get<10>(out));
     return out;
   }
   GraphFaces graph;
@@ -223,8 +224,8 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
     centroid = edges.centroid;
     if (moments) face_moments = edges.moments;
   }
-  const auto& [volume, cell_centroid, second_moment, status, neighbors_needed] = cells.cells;
-  return {volume,     cell_centroid, second_moment, status,   neighbors_needed,
+  const auto& [volume, cell_centroid, second_moment, status, neighbors_needed, radius] = cells.cells;
+  return {volume,     cell_centroid, second_moment, status,    neighbors_needed, radius,
           edge_index, area,          centroid,      wall_area, face_moments};
 }
 

@@ -1,0 +1,495 @@
+"""Periodic boxes: the neighbour searches and the Voronoi cells of points on a torus.
+
+A periodic axis of the box [lo, hi] repeats the cloud every ``hi - lo`` along
+it. The ops here add the images of the points that lie within a margin of the
+box's periodic faces, run the plain ops on the padded cloud, and keep what
+belongs to the original points, mapped back to them:
+
+- a neighbour search is exact for a query whose k-th distance (or radius)
+  stays inside the margin; each point counts once, at its nearest image
+  (the minimum-image convention);
+- a Voronoi cell is exact when twice its radius (``VoronoiCells.radius``, the
+  farthest vertex) stays inside the margin: no absent image can then cut it,
+  nor can the padded box's walls. Cells that reach past the margin are
+  computed again with a wider one, up to the images of every point.
+
+Points are first wrapped into [lo, hi) along the periodic axes (a point
+outside the box along one is its image inside). Float32 points are computed
+in float64 and the outputs rounded to float32: an image ``x + (hi - lo)``
+rounded to float32 would move by a rounding of the box's coordinates, which is
+large beside the cells of tight clusters. Gradients flow through the images
+to the points.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from typing import NamedTuple, Optional, Sequence, Tuple, Union
+
+import torch
+
+from .ops import KNN, VoronoiCells, as_box, knn as _plain_knn
+
+PeriodicLike = Union[bool, Sequence[bool], None]
+
+# A cell is certified when 2 radius (1 + CERTIFY_SLACK) is within the margin:
+# the radius is that of the computed vertices, which an ill-conditioned vertex
+# (nearly parallel planes) holds to less than the cell's volume.
+CERTIFY_SLACK = 1e-2
+# A first margin of this many mean spacings (the cube root of the volume a
+# point) holds the cells of blue and white noise next to the faces; cells that
+# reach further get a second call with the margin they need.
+FIRST_MARGIN_SPACINGS = 3.0
+# Rounds of a wider margin before the images of every point within the
+# cells' reach (the last round certifies every cell: see _voronoi_images).
+MARGIN_ROUNDS = 4
+
+
+def periodic_axes(periodic: PeriodicLike, caller: str) -> Optional[Tuple[bool, bool, bool]]:
+    """The periodic axes that `periodic` names (True: all three; a 3-sequence of
+    bools: those), or None where none is periodic."""
+    if periodic is None or periodic is False:
+        return None
+    if periodic is True:
+        return (True, True, True)
+    if isinstance(periodic, torch.Tensor):
+        periodic = periodic.tolist()
+    if isinstance(periodic, (tuple, list)) and len(periodic) == 3 and all(isinstance(p, bool) for p in periodic):
+        return tuple(periodic) if any(periodic) else None
+    raise ValueError(f"torchvor.{caller}: periodic must be True, False or three bools (x, y, z), got {periodic!r}")
+
+
+class PeriodicBox(NamedTuple):
+    """The box (B, 2, 3) of a periodic call, its periods and axes."""
+
+    box: torch.Tensor      # (B, 2, 3)
+    period: torch.Tensor   # (B, 3): hi - lo on periodic axes, 0 on the others
+    axes: Tuple[bool, bool, bool]
+
+    @property
+    def mask(self) -> torch.Tensor:
+        return torch.tensor(self.axes, device=self.box.device)
+
+
+def periodic_box(points: torch.Tensor, box, batch: Optional[torch.Tensor], axes, caller: str) -> PeriodicBox:
+    """The box of a periodic call, required, with positive periods."""
+    if box is None:
+        raise ValueError(f"torchvor.{caller}: periodic needs a box (its edges are the periods)")
+    box_tensor = as_box(points, box, batch).to(points.dtype)
+    clouds = _check_batch(batch, points, caller)
+    if box_tensor.shape[0] == 1 and clouds > 1:
+        box_tensor = box_tensor.expand(clouds, 2, 3)
+    elif box_tensor.shape[0] < clouds:
+        raise ValueError(f"torchvor.{caller}: batch refers to {clouds} point clouds but box holds "
+                         f"{box_tensor.shape[0]}")
+    if not bool(torch.isfinite(box_tensor).all()):
+        raise ValueError(f"torchvor.{caller}: box contains NaN or Inf")
+    mask = torch.tensor(axes, device=box_tensor.device)
+    edges = box_tensor[:, 1] - box_tensor[:, 0]
+    if bool((edges[:, mask] <= 0).any()):
+        raise ValueError(f"torchvor.{caller}: the box is flat along a periodic axis (hi <= lo): "
+                         f"a period must be positive, got box {box_tensor.tolist()}")
+    period = torch.where(mask, edges, torch.zeros_like(edges))
+    return PeriodicBox(box_tensor, period, axes)
+
+
+def _check_batch(batch: Optional[torch.Tensor], points: torch.Tensor, caller: str) -> int:
+    """The number of clouds of a batch vector (1 without), after the checks
+    the ops make (the periodic calls index with it before they run)."""
+    if batch is None:
+        return 1
+    if not isinstance(batch, torch.Tensor) or batch.dtype != torch.int64:
+        raise TypeError(f"torchvor.{caller}: batch must be an int64 tensor")
+    if batch.shape != (points.shape[0],):
+        raise ValueError(f"torchvor.{caller}: batch must have shape ({points.shape[0]},), got {tuple(batch.shape)}")
+    if batch.device != points.device:
+        raise ValueError(f"torchvor.{caller}: batch is on {batch.device}, points on {points.device}")
+    if batch.numel() == 0:
+        return 1
+    if bool((batch < 0).any()) or bool((batch[1:] < batch[:-1]).any()):
+        raise ValueError(f"torchvor.{caller}: batch must be non-negative and sorted")
+    return int(batch[-1]) + 1
+
+
+def _per_point(values: torch.Tensor, batch: Optional[torch.Tensor], n: int) -> torch.Tensor:
+    """Rows of a (B, ...) tensor for each of n points of batch vector `batch`."""
+    if batch is None:
+        return values[0].expand(n, *values.shape[1:])
+    return values[batch]
+
+
+def wrap(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor]) -> torch.Tensor:
+    """The points moved into [lo, hi) along the periodic axes by whole periods
+    (the others as given). The shift is a constant: gradients pass unchanged."""
+    n = points.shape[0]
+    lo = _per_point(pbox.box[:, 0], batch, n)
+    period = _per_point(pbox.period, batch, n)
+    with torch.no_grad():
+        periodic = period > 0
+        safe = torch.where(periodic, period, torch.ones_like(period))
+        turns = torch.where(periodic, torch.floor((points - lo) / safe), torch.zeros_like(points))
+        moved = points - turns * period
+        # rounding can land a point on hi (or a hair below lo): take its image
+        hi = lo + period
+        turns = turns + torch.where(periodic & (moved >= hi), torch.ones_like(turns), torch.zeros_like(turns))
+        turns = turns - torch.where(periodic & (moved < lo), torch.ones_like(turns), torch.zeros_like(turns))
+        offset = turns * period
+    inside = points - offset
+    with torch.no_grad():  # a last rounding at hi: the point at lo is the same point
+        at_hi = periodic & (inside >= hi)
+    return torch.where(at_hi, lo.expand_as(inside), inside)
+
+
+class Padded(NamedTuple):
+    """A cloud and the images of its points near the periodic faces."""
+
+    points: torch.Tensor             # (P, 3): the points and their images, by batch element
+    source: torch.Tensor             # (P,) int64: the point each row is (an image of)
+    shift: torch.Tensor              # (P, 3) int64: the image's shift in periods
+    batch: Optional[torch.Tensor]    # (P,) sorted, or None
+    position: torch.Tensor           # (N,) int64: the row of each point itself
+    box: torch.Tensor                # (B, 2, 3): the box widened by the margin on the periodic axes
+
+
+def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor) -> Padded:
+    """`points` (wrapped) and every image of them within `margin` (B,) of the
+    box along the periodic axes (on all of them at once)."""
+    n, device = points.shape[0], points.device
+    lo = _per_point(pbox.box[:, 0], batch, n)
+    hi = _per_point(pbox.box[:, 1], batch, n)
+    period = _per_point(pbox.period, batch, n)
+    m = _per_point(margin, batch, n).unsqueeze(1)
+    periodic = pbox.mask
+    with torch.no_grad():
+        # points with an image within the margin: near a periodic face, or all where the margin exceeds a period
+        reach = torch.where(periodic, period, torch.full_like(period, math.inf))
+        near = (((points - lo) < m) | ((hi - points) < m) | (m >= reach)) & periodic
+        candidates = near.any(1).nonzero().squeeze(1)
+        turns = [int(math.ceil(float((margin / pbox.period[:, a].clamp_min(1e-300)).max()))) if periodic[a] else 0
+                 for a in range(3)]
+        sources, shifts = [], []
+        if candidates.numel():
+            p, low, high, per, mm = (t[candidates] for t in (points, lo, hi, period, m))
+            for shift in itertools.product(*(range(-t, t + 1) for t in turns)):
+                if not any(shift):
+                    continue
+                s = torch.tensor(shift, dtype=points.dtype, device=device)
+                image = p + s * per
+                keep = ((image >= low - mm) & (image <= high + mm)) | ~periodic
+                keep = keep.all(1)
+                sources.append(candidates[keep])
+                shifts.append(torch.tensor(shift, device=device).expand(int(keep.sum()), 3))
+        source = torch.cat([torch.arange(n, device=device), *sources])
+        shift = torch.cat([torch.zeros(n, 3, dtype=torch.int64, device=device), *shifts])
+    images = points[source[n:]] + shift[n:].to(points.dtype) * period[source[n:]]
+    padded = torch.cat([points, images])
+    position = torch.arange(n, device=device)
+    padded_batch = None
+    if batch is not None:
+        with torch.no_grad():
+            padded_batch = torch.cat([batch, batch[source[n:]]])
+            order = torch.sort(padded_batch, stable=True).indices
+            padded_batch = padded_batch[order]
+            source, shift = source[order], shift[order]
+            position = torch.empty_like(order)
+            position[order] = torch.arange(order.numel(), device=device)
+            position = position[:n]
+        padded = padded[order]
+    widened = pbox.box.clone()
+    grow = torch.where(periodic, margin.unsqueeze(1).to(widened.dtype), torch.zeros_like(widened[:, 0]))
+    widened[:, 0] -= grow
+    widened[:, 1] += grow
+    return Padded(padded, source, shift, padded_batch, position, widened)
+
+
+def face_distance(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor]) -> torch.Tensor:
+    """(N,) float64: each (wrapped) point's distance to the nearest periodic face of its box."""
+    n = points.shape[0]
+    lo = _per_point(pbox.box[:, 0], batch, n).double()
+    hi = _per_point(pbox.box[:, 1], batch, n).double()
+    p = points.detach().double()
+    gap = torch.minimum(p - lo, hi - p).clamp_min(0)
+    gap = torch.where(pbox.mask, gap, torch.full_like(gap, math.inf))
+    return gap.amin(1)
+
+
+def first_margin(pbox: PeriodicBox, batch: Optional[torch.Tensor], n: int, per_point: float) -> torch.Tensor:
+    """(B,) a margin of `per_point` times the mean spacing of each batch element."""
+    num = pbox.box.shape[0]
+    counts = (torch.bincount(batch, minlength=num) if batch is not None
+              else torch.tensor([n], device=pbox.box.device)).to(torch.float64)
+    volume = (pbox.box[:, 1] - pbox.box[:, 0]).double().prod(1)
+    spacing = (volume / counts.clamp_min(1)) ** (1.0 / 3.0)
+    return (per_point * spacing).to(pbox.box.dtype)
+
+
+def work_dtype(points: torch.Tensor) -> torch.dtype:
+    """The dtype periodic calls compute in (module docstring)."""
+    return torch.float64 if points.dtype == torch.float32 else points.dtype
+
+
+def image_shift(offset_j: torch.Tensor, offset_i: torch.Tensor, shift: torch.Tensor,
+                period: torch.Tensor) -> torch.Tensor:
+    """The shift (in periods) of the image of j that i sees, in the caller's
+    coordinates (wrap moved each point by an offset of whole periods)."""
+    safe = torch.where(period > 0, period, torch.ones_like(period))
+    moved = torch.round((offset_i - offset_j) / safe).to(torch.int64)
+    return shift + torch.where(period > 0, moved, torch.zeros_like(moved))
+
+
+# ---- neighbour searches ----------------------------------------------------
+
+def _sort_rows(dist2: torch.Tensor, source: torch.Tensor, shift: Optional[torch.Tensor] = None):
+    """Each row by (distance, index) as the plain searches order it (missing last)."""
+    key = torch.where(source >= 0, source, torch.full_like(source, torch.iinfo(torch.int64).max))
+    order = torch.sort(key, dim=1, stable=True).indices
+    dist2, source = dist2.gather(1, order), source.gather(1, order)
+    again = torch.sort(dist2.detach(), dim=1, stable=True).indices
+    return dist2.gather(1, again), source.gather(1, again)
+
+
+def knn(points, k, queries, batch, query_batch, exclude_self, pbox: PeriodicBox) -> KNN:
+    """torchvor.knn on the torus (see the module docstring): each point at
+    most once a row, at its nearest image. `queries` None: the points."""
+    out_dtype = points.dtype
+    dtype = work_dtype(points)
+    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
+    x = wrap(points.to(dtype), pbox, batch)
+    if queries is not None:
+        _check_batch(query_batch, queries, "knn")
+    q = x if queries is None else wrap(queries.to(dtype), pbox, query_batch)
+    m, n = q.shape[0], x.shape[0]
+    dist2 = torch.full((m, k), math.inf, dtype=dtype, device=x.device)
+    index = torch.full((m, k), -1, dtype=torch.int64, device=x.device)
+    if m == 0 or n == 0:
+        return KNN(dist2.to(out_dtype), index)
+    gap = face_distance(q, pbox, query_batch)
+    margin = first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS) * max(1.0, (k / 20) ** (1 / 3))
+    # clouds with no more points than a row holds: every pair at once
+    counts = torch.bincount(batch, minlength=pbox.box.shape[0]) if batch is not None else torch.tensor([n], device=x.device)
+    small = _per_point(counts, query_batch, m) <= k + int(bool(exclude_self))
+    brute = [torch.arange(m, device=x.device)[small]]
+    rows = torch.arange(m, device=x.device)[~small]
+    done_dist2, done_index, done_rows = [], [], []
+    for _ in range(MARGIN_ROUNDS):
+        if rows.numel() == 0:
+            break
+        padded = pad(x, pbox, batch, margin)
+        extra = 1 if exclude_self else 0
+        sub_batch = None if query_batch is None else query_batch[rows]
+        found = _plain_knn(padded.points, k + extra, q[rows], batch=padded.batch, query_batch=sub_batch)
+        d2, idx = found.dist2, found.idx
+        if exclude_self:  # the query's own row of the padded cloud, wherever it sorts among ties
+            itself = idx == padded.position[rows].unsqueeze(1)
+            d2 = torch.where(itself, torch.full_like(d2, math.inf), d2)
+            idx = torch.where(itself, torch.full_like(idx, -1), idx)
+        source = torch.where(idx >= 0, padded.source[idx.clamp_min(0)], idx)
+        d2, source = _sort_rows(d2, source)
+        d2, source = d2[:, :k], source[:, :k]
+        # exact: the k-th distance within the margin, and no point twice
+        reach = (margin[sub_batch] if sub_batch is not None else margin[0].expand(rows.numel())).double()
+        last = d2[:, -1].detach().double()
+        inside = torch.sqrt(last) <= reach + gap[rows]
+        unique = torch.sort(source, dim=1).values
+        twice = ((unique[:, 1:] == unique[:, :-1]) & (unique[:, 1:] >= 0)).any(1)
+        ok = inside & ~twice
+        done_dist2.append(d2[ok]), done_index.append(source[ok]), done_rows.append(rows[ok])
+        brute.append(rows[twice])
+        retry = ~ok & ~twice
+        need = torch.sqrt(last[retry]) - gap[rows[retry]]
+        rows = rows[retry]
+        if rows.numel():
+            wanted = torch.zeros_like(margin).scatter_reduce(
+                0, query_batch[rows] if query_batch is not None else torch.zeros_like(rows),
+                (1.25 * need).to(margin.dtype), "amax")
+            margin = torch.maximum(2 * margin, wanted)
+    brute = torch.cat([*brute, rows])
+    if brute.numel():
+        d2, source = _brute_force_knn(x, q, k, brute, batch, query_batch, exclude_self, pbox)
+        done_dist2.append(d2), done_index.append(source), done_rows.append(brute)
+    all_rows = torch.cat(done_rows)
+    dist2 = dist2.index_put((all_rows,), torch.cat(done_dist2))
+    index = index.index_put((all_rows,), torch.cat(done_index))
+    return KNN(dist2.to(out_dtype), index)
+
+
+def minimum_image(difference: torch.Tensor, period: torch.Tensor) -> torch.Tensor:
+    """The difference of two positions moved by whole periods to its shortest form."""
+    safe = torch.where(period > 0, period, torch.ones_like(period))
+    turns = torch.where(period > 0, torch.round(difference.detach() / safe), torch.zeros_like(difference))
+    return difference - turns * period
+
+
+def _brute_force_knn(x, q, k, rows, batch, query_batch, exclude_self, pbox, chunk_pairs=1 << 24):
+    """The k nearest points at their nearest images for queries `rows`, every
+    pair at once (clouds small beside k)."""
+    n = x.shape[0]
+    out_d2, out_index = [], []
+    step = max(1, chunk_pairs // max(1, n))
+    for start in range(0, rows.numel(), step):
+        part = rows[start:start + step]
+        period = _per_point(pbox.period, query_batch, q.shape[0])[part]
+        difference = minimum_image(x.unsqueeze(0) - q[part].unsqueeze(1), period.unsqueeze(1))
+        d2 = (difference * difference).sum(2)
+        if batch is not None:
+            d2 = torch.where(batch.unsqueeze(0) == query_batch[part].unsqueeze(1), d2, torch.full_like(d2, math.inf))
+        if exclude_self:
+            d2 = d2.index_put((torch.arange(part.numel(), device=x.device), part), torch.tensor(math.inf, dtype=d2.dtype))
+        index = torch.arange(n, device=x.device).expand(part.numel(), n)
+        d2s, idx = _sort_rows(d2, index)
+        d2s, idx = d2s[:, :k], idx[:, :k]
+        if idx.shape[1] < k:
+            fill = k - idx.shape[1]
+            d2s = torch.cat([d2s, torch.full((part.numel(), fill), math.inf, dtype=d2s.dtype, device=x.device)], 1)
+            idx = torch.cat([idx, torch.full((part.numel(), fill), -1, dtype=idx.dtype, device=x.device)], 1)
+        idx = torch.where(torch.isinf(d2s), torch.full_like(idx, -1), idx)
+        out_d2.append(d2s), out_index.append(idx)
+    return torch.cat(out_d2), torch.cat(out_index)
+
+
+def radius(points, r, queries, batch, query_batch, max_num_neighbors, exclude_self, pbox: PeriodicBox):
+    """torchvor.radius on the torus: (idx, row, dist2) of every point within r
+    of each query at its nearest image, sorted by query, distance, index."""
+    from .radius import radius as _plain_radius
+
+    out_dtype = points.dtype
+    dtype = work_dtype(points)
+    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
+    x = wrap(points.to(dtype), pbox, batch)
+    if queries is not None:
+        _check_batch(query_batch, queries, "radius")
+    q = x if queries is None else wrap(queries.to(dtype), pbox, query_batch)
+    margin = torch.full((pbox.box.shape[0],), float(r), dtype=dtype, device=x.device)
+    padded = pad(x, pbox, batch, margin)
+    found = _plain_radius(padded.points, r, q, batch=padded.batch, query_batch=query_batch)
+    idx, row = found.edge_index
+    dist2 = found.dist2
+    if exclude_self:
+        keep = idx != padded.position[row]
+        idx, row, dist2 = idx[keep], row[keep], dist2[keep]
+    source = padded.source[idx]
+    # two images of a point within r of a query only where 2 r reaches a period
+    periods = pbox.period[:, list(i for i, a in enumerate(pbox.axes) if a)]
+    if idx.numel() and 2 * r >= float(periods.min()):
+        order = _lexsort([row, source, dist2.detach()])
+        row, source, dist2 = row[order], source[order], dist2[order]
+        first = torch.ones_like(row, dtype=torch.bool)
+        first[1:] = (row[1:] != row[:-1]) | (source[1:] != source[:-1])
+        row, source, dist2 = row[first], source[first], dist2[first]
+    order = _lexsort([row, dist2.detach(), source])
+    row, source, dist2 = row[order], source[order], dist2[order]
+    if max_num_neighbors is not None and row.numel():
+        start = torch.searchsorted(row, row, side="left")
+        keep = (torch.arange(row.numel(), device=row.device) - start) < max_num_neighbors
+        row, source, dist2 = row[keep], source[keep], dist2[keep]
+    return source, row, dist2.to(out_dtype)
+
+
+def _lexsort(keys):
+    """The order that sorts by keys[0], then keys[1], ... (stable sorts, last key first)."""
+    order = torch.sort(keys[-1], stable=True).indices
+    for key in reversed(keys[:-1]):
+        order = order[torch.sort(key[order], stable=True).indices]
+    return order
+
+
+# ---- Voronoi cells -----------------------------------------------------------
+
+class PeriodicCells(NamedTuple):
+    cells: VoronoiCells
+    offset: torch.Tensor       # (N, 3): each point minus its wrapped position
+    padded: Padded
+    graph: Optional[object]    # the padded cloud's VoronoiGraph, where asked
+
+
+def _full_reach(pbox: PeriodicBox) -> torch.Tensor:
+    """(B,) a margin that certifies every cell: a cell lies within half a
+    period of its point along a periodic axis and inside the box along the
+    others, so twice its radius is at most this."""
+    edges = (pbox.box[:, 1] - pbox.box[:, 0]).double()
+    extent = torch.where(pbox.mask, edges / 2, edges)
+    return (2 * extent.norm(dim=1) * (1 + 1e-3)).to(pbox.box.dtype)
+
+
+def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> PeriodicCells:
+    """The periodic cells of `points` (and the padded cloud's graph with
+    `graph`), in the work dtype: padded with images until every computed
+    cell is certified (module docstring)."""
+    from .graph import voronoi_graph as _plain_graph
+    from .ops import CellStatus, voronoi as _plain_voronoi
+
+    dtype = work_dtype(points)
+    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
+    given = points.to(dtype)
+    x = wrap(given, pbox, batch)
+    offset = (given - x).detach()
+    n = x.shape[0]
+    gap = face_distance(x, pbox, batch)
+    full = _full_reach(pbox)
+    margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS), full)
+    for round_ in range(MARGIN_ROUNDS + 1):
+        padded = pad(x, pbox, batch, margin)
+        if graph:
+            result = _plain_graph(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
+                                  memory_budget=memory_budget)
+            everything = result.cells
+        else:
+            result = None
+            everything = _plain_voronoi(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
+                                        memory_budget=memory_budget)
+        own = VoronoiCells(*(t[padded.position] for t in everything))
+        computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE)
+        reach = 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
+        within = _per_point(margin, batch, n).double() + gap
+        short = computed & ~(reach <= within)
+        if not bool(short.any()):
+            break
+        if bool((margin >= full).all()):
+            raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
+        need = (reach - gap)[short] * 1.25
+        wanted = torch.zeros_like(margin).scatter_reduce(
+            0, batch[short] if batch is not None else torch.zeros_like(need, dtype=torch.int64),
+            need.to(margin.dtype), "amax")
+        margin = torch.minimum(torch.maximum(2 * margin, wanted), full)
+        if round_ == MARGIN_ROUNDS - 1:
+            margin = full
+    return PeriodicCells(own, offset, padded, result)
+
+
+def voronoi(points, pbox, batch, k, memory_budget) -> VoronoiCells:
+    """torchvor.voronoi on the torus: centroids near their points (each
+    point plus the centroid's offset from it within the cell)."""
+    found = cells(points, pbox, batch, k, memory_budget, graph=False)
+    c = found.cells
+    dtype = points.dtype
+    return VoronoiCells(c.volume.to(dtype), (c.centroid + found.offset).to(dtype), c.second_moment.to(dtype),
+                        c.status, c.neighbors_needed, c.radius.to(dtype))
+
+
+def voronoi_graph(points, pbox, batch, k, memory_budget):
+    """torchvor.voronoi_graph on the torus: (cells, edge_index, area, centroid,
+    wall_area, shift), edges sorted by cell, neighbour, then shift."""
+    found = cells(points, pbox, batch, k, memory_budget, graph=True)
+    padded, graph = found.padded, found.graph
+    dtype = points.dtype
+    original = (padded.shift == 0).all(1)
+    j_row, i_row = graph.edge_index
+    keep = original[i_row]
+    j_row, i_row = j_row[keep], i_row[keep]
+    i, j = padded.source[i_row], padded.source[j_row]
+    n = points.shape[0]
+    period = _per_point(pbox.period.to(found.offset.dtype), batch, n)
+    shift = image_shift(found.offset[j], found.offset[i], padded.shift[j_row], period[i])
+    if shift.numel() and int(shift.abs().max()) > 127:
+        raise ValueError("torchvor.voronoi_graph: points lie more than 127 periods from the box; "
+                         "wrap them into it first (shift is int8)")
+    code = ((shift + 128) * torch.tensor([65536, 256, 1], device=shift.device)).sum(1)
+    order = _lexsort([i, j, code])
+    i, j, shift, i_row = i[order], j[order], shift[order], i_row[order]
+    area = graph.area[keep][order]
+    centroid = graph.centroid[keep][order] + found.offset[i].to(graph.centroid.dtype)
+    c = found.cells
+    cells_out = VoronoiCells(c.volume.to(dtype), (c.centroid + found.offset).to(dtype), c.second_moment.to(dtype),
+                             c.status, c.neighbors_needed, c.radius.to(dtype))
+    wall_area = graph.wall_area[padded.position].to(dtype)
+    return cells_out, torch.stack([j, i]), area.to(dtype), centroid.to(dtype), wall_area, shift.to(torch.int8)
