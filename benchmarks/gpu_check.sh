@@ -80,8 +80,8 @@ for step in "${@:-cudatests}"; do
            # a line a case in fuzz_cases.log
       python3 tests/fuzz.py --device cuda --cells all --cases ${FUZZ_CASES:-10000} --start ${FUZZ_START:-0} \
         --seed ${FUZZ_SEED:-1} --max-n ${FUZZ_MAX_N:-1000000} --sample ${FUZZ_SAMPLE:-4} --workers ${FUZZ_WORKERS:-12} --grace ${FUZZ_GRACE:-60} \
-        --compare-max-n ${FUZZ_COMPARE_MAX_N:-5000} --time-budget ${FUZZ_SECONDS:-0} --json "$OUT/fuzz.json" 2>&1 \
-        | tail -80 > "$OUT/fuzz.log"; tail -40 "$OUT/fuzz.log"
+        --compare-max-n ${FUZZ_COMPARE_MAX_N:-5000} --time-budget ${FUZZ_SECONDS:-0} --json "$OUT/fuzz.json" \
+        > "$OUT/fuzz.log" 2>&1; grep -A40 "^fuzz summary" "$OUT/fuzz.log" | grep -v "^  \[second_moment\]\|^      replay" | head -60
       cat "$OUT"/fuzz.json.worker*.log > "$OUT/fuzz_cases.log" 2>/dev/null; rm -f "$OUT"/fuzz.json.worker* "$OUT"/fuzz.json.next  # few files come back
       grep -q "^fuzz: OK" "$OUT/fuzz.log" || status=1 ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
@@ -117,7 +117,8 @@ g = torchvor.voronoi_graph(p, ([0,0,0],[1,1,1]), on_failure='flag')  # the faces
 q = p.clone().requires_grad_(); torchvor.voronoi(q, ([0,0,0],[1,1,1])).volume.sum().backward()
 torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(), 'lloyd', r.sum().item(),
       'edges', g.edge_index.shape[1], 'grad', q.grad.abs().sum().item())
-" 2>&1 | tail -5 | tee -a "$OUT/sanitize.log" || status=1
+" > "$OUT/sanitize_run.log" 2>&1; code=$?
+          tail -5 "$OUT/sanitize_run.log" | tee -a "$OUT/sanitize.log"; [ $code = 0 ] || status=1
         done
       done
       # and a slice of the fuzzing campaign (SANITIZE_FUZZ_CASES cases of up to SANITIZE_FUZZ_MAX_N
@@ -126,8 +127,13 @@ torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(
         echo "$tool: fuzz slice" | tee -a "$OUT/sanitize.log"
         compute-sanitizer --tool $tool --error-exitcode 9 python3 tests/fuzz.py --device cuda --cells all \
           --cases ${SANITIZE_FUZZ_CASES:-30} --seed ${SANITIZE_FUZZ_SEED:-1} --max-n ${SANITIZE_FUZZ_MAX_N:-3000} \
-          --sample 1 --suspects 0 --quiet 2>&1 | tail -4 | tee -a "$OUT/sanitize.log" || status=1
-      done ;;
+          --sample 1 --suspects 0 --quiet > "$OUT/sanitize_run.log" 2>&1; code=$?
+        # each hazard's kind and where (kernel, line), counted, and the summary
+        grep -E "^========= +(Error|Warning|Race reported|Saved host backtrace| +at )|SUMMARY" "$OUT/sanitize_run.log" \
+          | sed -E 's/0x[0-9a-f]+/0x./g' | sort | uniq -c | sort -rn | head -40 | tee -a "$OUT/sanitize.log"
+        [ $code = 0 ] || status=1
+      done
+      rm -f "$OUT/sanitize_run.log" ;;
     build) ;;  # the build alone
     *) echo "gpu_check.sh: unknown step '$step'" >&2; status=1 ;;
   esac
