@@ -305,3 +305,54 @@ def test_periodic_laplacian_closes_every_cell(device, gen):
     normal = graph.area[:, None] * across / across.norm(dim=1, keepdim=True)
     closure = torch.zeros_like(points).index_add(0, i, normal)
     assert closure.abs().max().item() < 1e-9
+
+
+# ---- energy, Lloyd, command line -----------------------------------------------
+
+def test_cvt_energy_and_its_gradient(gen):
+    points = cloud(60, gen).requires_grad_()
+    energy = torchvor.cvt_energy(points, BOX, periodic=True)
+    cells = torchvor.voronoi(points.detach(), BOX, periodic=True)
+    assert energy.item() == pytest.approx(cells.second_moment.sum().item(), rel=1e-12)
+    (grad,) = torch.autograd.grad(energy, points, create_graph=True)
+    expected = 2 * cells.volume[:, None] * (points.detach() - cells.centroid)
+    torch.testing.assert_close(grad, expected)
+    with pytest.raises(RuntimeError):  # first order only
+        grad.sum().backward()
+    torch.autograd.gradcheck(lambda p: torchvor.cvt_energy(p, BOX, periodic=True), (points.detach().requires_grad_(),),
+                             atol=1e-6, rtol=1e-4)
+
+
+def test_lloyd_wraps_and_lowers_the_energy(device, gen):
+    points = cloud(300, gen, SKEWED, torch.float64, device)
+    relaxed, history = torchvor.lloyd(points, SKEWED, iters=8, periodic=True, return_history=True)
+    lo, hi = (torch.tensor(b, dtype=torch.float64, device=device) for b in SKEWED)
+    assert bool(((relaxed >= lo) & (relaxed < hi)).all())
+    energies = [step.energy for step in history]
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(energies, energies[1:]))
+    # one step by hand: each point to its cell's centroid, wrapped
+    cells = torchvor.voronoi(points, SKEWED, periodic=True)
+    one = torchvor.lloyd(points, SKEWED, iters=1, periodic=True)
+    moved = lo + torch.remainder(cells.centroid - lo, hi - lo)
+    torch.testing.assert_close(one, moved, rtol=0, atol=1e-12)
+    # the relaxed cells are more even than white noise's
+    assert torchvor.voronoi(relaxed, SKEWED, periodic=True).volume.std() < cells.volume.std() / 2
+
+
+def test_command_line(tmp_path):
+    from torchvor.cli import main
+
+    out = tmp_path / "graph.npz"
+    assert main(["graph", "--n", "200", "--periodic", "xz", "--out", str(out), "--quiet", "--device", "cpu"]) == 0
+    data = np.load(out)
+    assert data["shift"].shape == (data["edge_index"].shape[1], 3) and data["shift"][:, 1].max() == 0
+    assert data["volume"].sum() == pytest.approx(1.0, rel=1e-5)
+    points = np.random.default_rng(0).random((100, 3)) * 2  # outside the unit box along every axis
+    np.save(tmp_path / "points.npy", points)
+    cells = tmp_path / "cells.npz"
+    assert main(["cells", str(tmp_path / "points.npy"), "--periodic", "xyz", "--box", "0", "0", "0", "1", "1", "1",
+                 "--out", str(cells), "--quiet", "--device", "cpu", "--dtype", "float64"]) == 0
+    assert main(["cells", str(tmp_path / "points.npy"), "--periodic", "xyz", "--out", str(cells), "--quiet",
+                 "--device", "cpu"]) == 2  # needs --box
+    assert main(["lloyd", "--n", "100", "--periodic", "xw", "--out", str(tmp_path / "p.npy"), "--quiet",
+                 "--device", "cpu"]) == 2

@@ -57,7 +57,8 @@ output: .npz with arrays points (N,3), edge_index (2,E) int64 (row 0 the
 neighbour j, row 1 the cell i, sorted by i then j, every face both ways),
 area (E,) and centroid (E,3) of each face, wall_area (N,6) (each cell's area
 on the box walls -x, +x, -y, +y, -z, +z), volume (N,) and status (N,) int8
-(as in the cells command).
+(as in the cells command); with --periodic also shift (E,3) int8, the image
+of j that cell i meets: points[j] + shift * (box edge).
 """
 
 
@@ -120,6 +121,10 @@ def _add_common_arguments(parser: argparse.ArgumentParser, out_help: str) -> Non
                         help="also draw a picture (needs matplotlib, else skipped with a warning): a z "
                              "mid-plane slice of the diagram and the energy curve (lloyd) or volume "
                              "histogram (cells)")
+    parser.add_argument("--periodic", default=None, metavar="AXES",
+                        help="periodic box along AXES (xyz, or a subset such as xz): cells wrap around, and "
+                             "points outside the box along those axes are taken at their image (needs --box "
+                             "with an INPUT file)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
@@ -208,15 +213,29 @@ def _load_points(args, dtype: torch.dtype, device: torch.device) -> Tuple[torch.
     return points, f"{points.shape[0]} points from {args.input}"
 
 
+def _periodic_axes(args):
+    """--periodic as three bools, or False."""
+    if args.periodic is None:
+        return False
+    text = args.periodic.lower()
+    if not text or any(c not in "xyz" for c in text) or len(set(text)) != len(text):
+        raise CliError(f"--periodic: name the periodic axes as letters of xyz (e.g. xyz or xz), got {args.periodic!r}")
+    return tuple(axis in text for axis in "xyz")
+
+
 def _box(args, points: torch.Tensor) -> torch.Tensor:
     """The (1, 2, 3) box: --box, the unit cube for generated points, else the bounding box."""
+    periodic = _periodic_axes(args)
+    if periodic and args.box is None and args.input is not None:
+        raise CliError("--periodic needs --box (its edges are the periods)")
     if args.box is not None:
         box = torch.tensor(args.box, dtype=points.dtype).reshape(2, 3)
         flat = [axis for axis, (lo, hi) in zip("xyz", box.T.tolist()) if not lo < hi]
         if flat:
             raise CliError(f"--box: needs X0 < X1, Y0 < Y1 and Z0 < Z1 (violated along {', '.join(flat)})")
         box = box.to(points.device)
-        outside = int((~((points >= box[0]) & (points <= box[1])).all(1)).sum())
+        bounded = ~torch.tensor(periodic or (False, False, False), device=points.device)  # periodic axes wrap
+        outside = int((~((points >= box[0]) & (points <= box[1]) | ~bounded).all(1)).sum())
         if outside:
             raise CliError(f"{outside} of {points.shape[0]} points lie outside --box {_box_text(box)}")
         return box.unsqueeze(0)
@@ -280,7 +299,7 @@ def run_lloyd(args) -> int:
     points, box = _prepare(args, (".npy", ".ply", ".xyz", ".txt"), "the relaxed points file")
     start = time.perf_counter()
     relaxed, history = lloyd(points, box, iters=args.iters, tol=args.tol, progress=not args.quiet,
-                             return_history=True)
+                             return_history=True, periodic=_periodic_axes(args))
     elapsed = time.perf_counter() - start
     if history and history[-1].iteration + 1 < args.iters:
         _say(args, f"torchvor lloyd: converged after {len(history)} iterations (--tol {args.tol:g})")
@@ -300,7 +319,7 @@ def run_cells(args) -> int:
 
     points, box = _prepare(args, point_io.CELL_SUFFIXES, "the cell table")
     start = time.perf_counter()
-    cells = voronoi(points, box, on_failure="flag")
+    cells = voronoi(points, box, on_failure="flag", periodic=_periodic_axes(args))
     total_volume = float(cells.volume.sum(dtype=torch.float64))
     elapsed = time.perf_counter() - start
     failed = int(((cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)).sum())
@@ -330,7 +349,7 @@ def run_graph(args) -> int:
 
     points, box = _prepare(args, (".npz",), "the graph")
     start = time.perf_counter()
-    graph = voronoi_graph(points, box, on_failure="flag")
+    graph = voronoi_graph(points, box, on_failure="flag", periodic=_periodic_axes(args))
     edges = graph.edge_index.shape[1]
     elapsed = time.perf_counter() - start
     status = graph.cells.status
@@ -341,10 +360,11 @@ def run_graph(args) -> int:
               file=sys.stderr)
 
     def write(path):
+        extra = {} if graph.shift is None else {"shift": graph.shift.cpu().numpy()}
         np.savez(path, points=points.cpu().numpy(), edge_index=graph.edge_index.cpu().numpy(),
                  area=graph.area.cpu().numpy(), centroid=graph.centroid.cpu().numpy(),
                  wall_area=graph.wall_area.cpu().numpy(), volume=graph.cells.volume.cpu().numpy(),
-                 status=status.cpu().numpy())
+                 status=status.cpu().numpy(), **extra)
 
     _write(args.out, write)
     print(f"torchvor: wrote {edges} edges ({edges // 2} faces) to {args.out}")

@@ -24,6 +24,7 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from . import ops as _ops  # loads torchvor._C (the schemas) and voronoi_cells' fake kernel
 from .ops import BoxLike
@@ -79,12 +80,29 @@ torch.library.register_autograd("torchvor::cvt_energy", _cvt_energy_backward,
 _cvt_energy_op = torch.ops.torchvor.cvt_energy.default
 
 
+class _EnergyWithGradient(torch.autograd.Function):
+    """An energy computed apart, with its gradient (first order only): the
+    periodic energy, whose cells come from torchvor.periodic."""
+
+    @staticmethod
+    def forward(ctx, points, energy, gradient):
+        ctx.save_for_backward(gradient)
+        return energy.clone()
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_energy):
+        (gradient,) = ctx.saved_tensors
+        return grad_energy * gradient, None, None
+
+
 def cvt_energy(
     points: torch.Tensor,
     box: Optional[BoxLike] = None,
     *,
     batch: Optional[torch.Tensor] = None,
     k: Optional[int] = None,
+    periodic: _ops.PeriodicLike = False,
 ) -> torch.Tensor:
     """CVT energy: the sum over Voronoi cells of ``integral |y - x_i|^2 dy``.
 
@@ -102,6 +120,7 @@ def cvt_energy(
         k: first-pass neighbour count of the cell computation (default: measured
             on a pilot sample); any k gives exact cells, one close to what cells
             need is fastest.
+        periodic: as :func:`torchvor.voronoi` (the box is then required).
 
     Returns:
         A 0-dim tensor of the points' dtype and device. It is NaN when a cell
@@ -111,6 +130,15 @@ def cvt_energy(
         ValueError: bad shapes, NaN/Inf, points outside the box, k < 1.
         TypeError: non-floating points or mismatched dtypes.
     """
+    axes = _ops._periodic.periodic_axes(periodic, "cvt_energy")
+    if axes is not None:
+        _ops._check_tensor(points, "points")
+        _ops._check_points(points, "cvt_energy")
+        pbox = _ops._periodic.periodic_box(points.detach(), box, batch, axes, "cvt_energy")
+        with torch.no_grad():
+            cells = _ops._periodic.voronoi(points.detach(), pbox, batch, k, _ops.DEFAULT_MEMORY_BUDGET)
+            gradient = 2.0 * cells.volume.unsqueeze(1) * (points.detach() - cells.centroid)
+        return _EnergyWithGradient.apply(points, cells.second_moment.sum(), gradient)
     box_tensor = _ops.as_box(points, box, batch)
     if box is None:
         # The box is constant by contract; derived from points it would

@@ -34,7 +34,8 @@ from typing import Callable, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .ops import BoxLike, CellStatus, VoronoiCells, _box_for_call
+from .ops import (DEFAULT_MEMORY_BUDGET, BoxLike, CellStatus, PeriodicLike, VoronoiCells, _box_for_call,
+                  _check_points, _periodic)
 
 MIN_K, MAX_K = 8, 256
 K_QUANTILE = 0.99   # share of cells that the adapted k should cover in one pass
@@ -85,6 +86,7 @@ def lloyd(
     progress: bool = False,
     callback: Optional[Callback] = None,
     return_history: bool = False,
+    periodic: PeriodicLike = False,
 ) -> Union[torch.Tensor, Tuple[torch.Tensor, List[LloydStep]]]:
     """Relax ``points`` by ``iters`` Lloyd iterations inside a fixed box.
 
@@ -114,6 +116,11 @@ def lloyd(
             Returning True stops the relaxation. Do not modify ``points`` in place.
         return_history: also return the list of :class:`LloydStep`, one per
             iteration run.
+        periodic: as :func:`torchvor.voronoi` (the box is then required): the
+            cells wrap around and each moved point is wrapped into the box.
+            Each iteration is a periodic ``voronoi`` call (the cloud padded
+            with images, :mod:`torchvor.periodic`), with ``k`` adapted the
+            same way; ``LloydStep.k`` is then the k given (0: each call's pilot's).
 
     Returns:
         The relaxed points, a new (N, 3) tensor with the input's dtype and
@@ -131,7 +138,18 @@ def lloyd(
     """
     _check_arguments(points, iters, tol, k)
     current = points.detach()  # never written in place: each iteration makes a new tensor
-    box_tensor = _box_for_call(current, box, batch).detach()
+    axes = _periodic.periodic_axes(periodic, "lloyd")
+    if axes is not None:
+        _check_points(current, "lloyd")
+        pbox = _periodic.periodic_box(current, box, batch, axes, "lloyd")
+
+        def one_step(current, batch, k):
+            return _periodic_step(current, pbox, batch, k)
+    else:
+        box_tensor = _box_for_call(current, box, batch).detach()
+
+        def one_step(current, batch, k):
+            return _step(current, box_tensor, batch, k)
     # `current` (and the batch) in grid order: row i holds the caller's point
     # row_of[i] (None: the caller's order).
     row_of: Optional[torch.Tensor] = None
@@ -140,8 +158,7 @@ def lloyd(
     for iteration in range(iters):
         start = time.perf_counter()
         # Failures are flagged, and reported below from the op's single read.
-        moved, cells, order, energy, max_displacement, used_k, failed, needed = _step(
-            current, box_tensor, batch, next_k)
+        moved, cells, order, energy, max_displacement, used_k, failed, needed = one_step(current, batch, next_k)
         row_of = order if row_of is None else row_of.index_select(0, order)
         if batch is not None:  # the grid order sorts by batch element first: still sorted
             batch = batch.index_select(0, order)
@@ -194,6 +211,26 @@ def _check_arguments(points, iters, tol, k) -> None:
         raise ValueError(f"torchvor.lloyd: tol must be None or >= 0, got {tol!r}")
     if k is not None and (not isinstance(k, int) or k < 1):
         raise ValueError(f"torchvor.lloyd: k must be None or a positive int, got {k!r}")
+
+
+def _periodic_step(current: torch.Tensor, pbox, batch: Optional[torch.Tensor], k: Optional[int]):
+    """_step's outputs for a periodic box, from a periodic voronoi call (rows
+    in the caller's order: `order` is the identity)."""
+    n = current.shape[0]
+    cells = _periodic.voronoi(current, pbox, batch, k, DEFAULT_MEMORY_BUDGET)
+    computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
+    failed = int((~computed).sum())
+    target = torch.where(computed.unsqueeze(1), cells.centroid, current)
+    moved = _periodic.wrap(target, pbox, batch)
+    energy = float(cells.second_moment.sum(dtype=torch.float64))
+    edges = pbox.box[:, 1] - pbox.box[:, 0]
+    diagonal = (edges.norm(dim=1)[batch] if batch is not None else edges[0].norm().expand(n)).double()
+    max_displacement = float(((target - current).double().norm(dim=1) / diagonal).max()) if n else 0.0
+    needed = 0
+    if bool(computed.any()):
+        counts = cells.neighbors_needed[computed].double()
+        needed = int(math.ceil(float(torch.quantile(counts[:: max(1, counts.numel() // QUANTILE_SAMPLE)], K_QUANTILE))))
+    return moved, cells, torch.arange(n, device=current.device), energy, max_displacement, k or 0, failed, needed
 
 
 def _step(current: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor],
