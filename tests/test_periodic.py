@@ -356,3 +356,15 @@ def test_command_line(tmp_path):
                  "--device", "cpu"]) == 2  # needs --box
     assert main(["lloyd", "--n", "100", "--periodic", "xw", "--out", str(tmp_path / "p.npy"), "--quiet",
                  "--device", "cpu"]) == 2
+
+
+def test_empty_inputs(device):
+    empty = torch.empty(0, 3, dtype=torch.float64, device=device)
+    assert torchvor.voronoi(empty, BOX, periodic=True).volume.shape == (0,)
+    assert torchvor.knn(empty, 3, box=BOX, periodic=True).idx.shape == (0, 3)
+    assert torchvor.radius(empty, 0.1, box=BOX, periodic=True).edge_index.shape == (2, 0)
+    graph = torchvor.voronoi_graph(empty, BOX, periodic=True)
+    assert graph.edge_index.shape == (2, 0) and graph.shift.shape == (0, 3)
+    assert torchvor.lloyd(empty, BOX, iters=2, periodic=True).shape == (0, 3)
+    queries = torch.rand(4, 3, dtype=torch.float64, device=device)
+    assert torchvor.knn(empty, 2, queries, box=BOX, periodic=True).idx.eq(-1).all()
