@@ -37,8 +37,9 @@ PeriodicLike = Union[bool, Sequence[bool], None]
 # (nearly parallel planes) holds to less than the cell's volume.
 CERTIFY_SLACK = 1e-2
 # A first margin of this many mean spacings (the cube root of the volume a
-# point) holds the cells of blue and white noise next to the faces; cells that
-# reach further get a second call with the margin they need.
+# point) holds the cells of blue noise and nearly all of white noise's next to
+# the faces; cells that reach further are computed again with the margin they
+# need.
 FIRST_MARGIN_SPACINGS = 3.0
 # Rounds of a wider margin before the images of every point within the
 # cells' reach (the last round certifies every cell: see _voronoi_images).
@@ -334,7 +335,8 @@ def _brute_force_knn(x, q, k, rows, batch, query_batch, exclude_self, pbox, chun
         if batch is not None:
             d2 = torch.where(batch.unsqueeze(0) == query_batch[part].unsqueeze(1), d2, torch.full_like(d2, math.inf))
         if exclude_self:
-            d2 = d2.index_put((torch.arange(part.numel(), device=x.device), part), torch.tensor(math.inf, dtype=d2.dtype))
+            d2 = d2.index_put((torch.arange(part.numel(), device=x.device), part),
+                          torch.tensor(math.inf, dtype=d2.dtype, device=d2.device))
         index = torch.arange(n, device=x.device).expand(part.numel(), n)
         d2s, idx = _sort_rows(d2, index)
         d2s, idx = d2s[:, :k], idx[:, :k]
@@ -414,9 +416,12 @@ def _full_reach(pbox: PeriodicBox) -> torch.Tensor:
 def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> PeriodicCells:
     """The periodic cells of `points` (and the padded cloud's graph with
     `graph`), in the work dtype: padded with images until every computed
-    cell is certified (module docstring)."""
+    cell is certified (module docstring). Without `graph`, the cells that
+    reach past the margin are computed again alone, among the points within
+    their reach of a wider padding; with it, everything is (the edges of a
+    cell come with their neighbours')."""
     from .graph import voronoi_graph as _plain_graph
-    from .ops import CellStatus, voronoi as _plain_voronoi
+    from .ops import voronoi as _plain_voronoi
 
     dtype = work_dtype(points)
     pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
@@ -438,22 +443,67 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
             everything = _plain_voronoi(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                         memory_budget=memory_budget)
         own = VoronoiCells(*(t[padded.position] for t in everything))
-        computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE)
-        reach = 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
         within = _per_point(margin, batch, n).double() + gap
-        short = computed & ~(reach <= within)
+        short = _reaching_past(own, within)
+        if not graph:  # the few cells that reach past the margin, alone
+            for again in range(MARGIN_ROUNDS):
+                if not bool(short.any()):
+                    break
+                margin = _wider(margin, own, short, gap, batch, full, last=again == MARGIN_ROUNDS - 1)
+                own, within = _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget)
+                short = _reaching_past(own, within)
         if not bool(short.any()):
             break
         if bool((margin >= full).all()):
             raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
-        need = (reach - gap)[short] * 1.25
-        wanted = torch.zeros_like(margin).scatter_reduce(
-            0, batch[short] if batch is not None else torch.zeros_like(need, dtype=torch.int64),
-            need.to(margin.dtype), "amax")
-        margin = torch.minimum(torch.maximum(2 * margin, wanted), full)
-        if round_ == MARGIN_ROUNDS - 1:
-            margin = full
+        margin = _wider(margin, own, short, gap, batch, full, last=round_ == MARGIN_ROUNDS - 1)
     return PeriodicCells(own, offset, padded, result)
+
+
+def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: computed cells whose twice radius reaches past `within`
+    (the distance to the nearest image left out)."""
+    from .ops import CellStatus
+
+    computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE)
+    reach = 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
+    return computed & ~(reach <= within)
+
+
+def _wider(margin, own, short, gap, batch, full, last: bool):
+    """The margin the cells `short` ask for (a quarter more), at least a
+    quarter more than before, at most `full` (the last round: `full`)."""
+    if last:
+        return full
+    need = (2 * own.radius[short].detach().double() * (1 + CERTIFY_SLACK) - gap[short]) * 1.25
+    wanted = torch.zeros_like(margin).scatter_reduce(
+        0, batch[short] if batch is not None else torch.zeros_like(need, dtype=torch.int64),
+        need.to(margin.dtype), "amax")
+    return torch.minimum(torch.maximum(1.25 * margin, wanted), full)
+
+
+def _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget):
+    """The cells `short` computed again among the points of the cloud padded
+    by `margin` that lie within a quarter more than their reach: their rows
+    of `own` replaced, and `within` with the distance to the nearest point
+    left out (the padding's edge, or that reach)."""
+    from .ops import voronoi as _plain_voronoi
+    from .radius import radius as _plain_radius
+
+    u = short.nonzero().squeeze(1)
+    wider = pad(x, pbox, batch, margin)
+    r = float((2.5 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).max())
+    found = _plain_radius(wider.points.detach(), r, x[u].detach(), batch=wider.batch,
+                          query_batch=batch[u] if batch is not None else None)
+    keep = torch.unique(torch.cat([found.edge_index[0], wider.position[u]]))  # sorted: batch order kept
+    sub = _plain_voronoi(wider.points[keep], wider.box, batch=wider.batch[keep] if batch is not None else None,
+                         k=k, on_failure="flag", memory_budget=memory_budget)
+    rows = torch.searchsorted(keep, wider.position[u])
+    own = VoronoiCells(*(t.index_copy(0, u, s[rows]) for t, s in zip(own, sub)))
+    reach = torch.minimum(_per_point(margin, batch, x.shape[0])[u].double() +
+                          face_distance(x[u], pbox, batch[u] if batch is not None else None),
+                          torch.full_like(within[u], r))
+    return own, within.index_copy(0, u, reach)
 
 
 def voronoi(points, pbox, batch, k, memory_budget) -> VoronoiCells:
