@@ -240,6 +240,18 @@ def image_shift(offset_j: torch.Tensor, offset_i: torch.Tensor, shift: torch.Ten
 
 # ---- neighbour searches ----------------------------------------------------
 
+def _search_inputs(points, queries, batch, query_batch, pbox: PeriodicBox, caller: str):
+    """(box in the work dtype, points, queries) of a search, wrapped into the
+    box; `queries` None: the points themselves."""
+    dtype = work_dtype(points)
+    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
+    x = wrap(points.to(dtype), pbox, batch)
+    if queries is None:
+        return pbox, x, x
+    _check_batch(query_batch, queries, caller)
+    return pbox, x, wrap(queries.to(dtype), pbox, query_batch)
+
+
 def _sort_rows(dist2: torch.Tensor, source: torch.Tensor, shift: Optional[torch.Tensor] = None):
     """Each row by (distance, index) as the plain searches order it (missing last)."""
     key = torch.where(source >= 0, source, torch.full_like(source, torch.iinfo(torch.int64).max))
@@ -252,13 +264,8 @@ def _sort_rows(dist2: torch.Tensor, source: torch.Tensor, shift: Optional[torch.
 def knn(points, k, queries, batch, query_batch, exclude_self, pbox: PeriodicBox) -> KNN:
     """torchvor.knn on the torus (see the module docstring): each point at
     most once a row, at its nearest image. `queries` None: the points."""
-    out_dtype = points.dtype
-    dtype = work_dtype(points)
-    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
-    x = wrap(points.to(dtype), pbox, batch)
-    if queries is not None:
-        _check_batch(query_batch, queries, "knn")
-    q = x if queries is None else wrap(queries.to(dtype), pbox, query_batch)
+    out_dtype, dtype = points.dtype, work_dtype(points)
+    pbox, x, q = _search_inputs(points, queries, batch, query_batch, pbox, "knn")
     m, n = q.shape[0], x.shape[0]
     dist2 = torch.full((m, k), math.inf, dtype=dtype, device=x.device)
     index = torch.full((m, k), -1, dtype=torch.int64, device=x.device)
@@ -354,13 +361,8 @@ def radius(points, r, queries, batch, query_batch, max_num_neighbors, exclude_se
     of each query at its nearest image, sorted by query, distance, index."""
     from .radius import radius as _plain_radius
 
-    out_dtype = points.dtype
-    dtype = work_dtype(points)
-    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
-    x = wrap(points.to(dtype), pbox, batch)
-    if queries is not None:
-        _check_batch(query_batch, queries, "radius")
-    q = x if queries is None else wrap(queries.to(dtype), pbox, query_batch)
+    out_dtype, dtype = points.dtype, work_dtype(points)
+    pbox, x, q = _search_inputs(points, queries, batch, query_batch, pbox, "radius")
     margin = torch.full((pbox.box.shape[0],), float(r), dtype=dtype, device=x.device)
     padded = pad(x, pbox, batch, margin)
     found = _plain_radius(padded.points, r, q, batch=padded.batch, query_batch=query_batch)
