@@ -368,3 +368,19 @@ def test_empty_inputs(device):
     assert torchvor.lloyd(empty, BOX, iters=2, periodic=True).shape == (0, 3)
     queries = torch.rand(4, 3, dtype=torch.float64, device=device)
     assert torchvor.knn(empty, 2, queries, box=BOX, periodic=True).idx.eq(-1).all()
+
+
+def test_a_period_far_shorter_than_the_cells(device, dtype, gen):
+    """A box 1e-5 thin along a periodic axis: cells span it, and images past
+    one period are never needed (the padding stops there)."""
+    box = ([0.0, 0.0, 0.0], [1.0, 1.0, 1e-5])
+    points = cloud(40, gen, box, dtype, device)
+    cells = torchvor.voronoi(points, box, periodic=True, on_failure="raise")
+    assert cells.volume.double().sum().item() == pytest.approx(1e-5, rel=1e-5)
+    check_cells(points, box, ALL, cells, [0, 13], 1e-5 if dtype == torch.float32 else 1e-9)
+    from scipy.spatial import cKDTree
+
+    near = torchvor.knn(points, 5, box=box, periodic=True)
+    data = points.double().cpu().numpy()
+    dist, _ = cKDTree(data, boxsize=[1.0, 1.0, 1e-5]).query(data, 6)
+    np.testing.assert_allclose(near.dist2.double().cpu().numpy(), dist[:, 1:] ** 2, rtol=1e-6)

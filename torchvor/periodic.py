@@ -154,24 +154,22 @@ class Padded(NamedTuple):
 
 def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor) -> Padded:
     """`points` (wrapped) and every image of them within `margin` (B,) of the
-    box along the periodic axes (on all of them at once)."""
+    box along the periodic axes (on all of them at once), the margin capped
+    at a period along each axis (axis_margins)."""
     n, device = points.shape[0], points.device
     lo = _per_point(pbox.box[:, 0], batch, n)
     hi = _per_point(pbox.box[:, 1], batch, n)
     period = _per_point(pbox.period, batch, n)
-    m = _per_point(margin, batch, n).unsqueeze(1)
+    m = _per_point(axis_margins(pbox, margin), batch, n)
     periodic = pbox.mask
     with torch.no_grad():
-        # points with an image within the margin: near a periodic face, or all where the margin exceeds a period
-        reach = torch.where(periodic, period, torch.full_like(period, math.inf))
-        near = (((points - lo) < m) | ((hi - points) < m) | (m >= reach)) & periodic
+        # points with an image within the margin: near a periodic face (all of them where it is a period)
+        near = (((points - lo) < m) | ((hi - points) < m) | (m >= period)) & periodic
         candidates = near.any(1).nonzero().squeeze(1)
-        turns = [int(math.ceil(float((margin / pbox.period[:, a].clamp_min(1e-300)).max()))) if periodic[a] else 0
-                 for a in range(3)]
         sources, shifts = [], []
         if candidates.numel():
             p, low, high, per, mm = (t[candidates] for t in (points, lo, hi, period, m))
-            for shift in itertools.product(*(range(-t, t + 1) for t in turns)):
+            for shift in itertools.product(*(range(-1, 2) if a else range(1) for a in pbox.axes)):
                 if not any(shift):
                     continue
                 s = torch.tensor(shift, dtype=points.dtype, device=device)
@@ -197,20 +195,35 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
             position = position[:n]
         padded = padded[order]
     widened = pbox.box.clone()
-    grow = torch.where(periodic, margin.unsqueeze(1).to(widened.dtype), torch.zeros_like(widened[:, 0]))
+    grow = axis_margins(pbox, margin).to(widened.dtype)
     widened[:, 0] -= grow
     widened[:, 1] += grow
     return Padded(padded, source, shift, padded_batch, position, widened)
 
 
-def face_distance(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor]) -> torch.Tensor:
-    """(N,) float64: each (wrapped) point's distance to the nearest periodic face of its box."""
+def axis_margins(pbox: PeriodicBox, margin: torch.Tensor) -> torch.Tensor:
+    """(B, 3): `margin` along each periodic axis, capped at its period (0 on
+    the others). A point within a period of the box along an axis holds the
+    nearest image, along it, of every point to anything within half a period
+    of the box; and a cell lies within half a period of its point (its own
+    images bound it). So images past a period never cut a cell, and an axis
+    padded by a whole period leaves no image out that could."""
+    return torch.where(pbox.mask, torch.minimum(margin.unsqueeze(1).to(pbox.period.dtype), pbox.period),
+                       torch.zeros_like(pbox.period))
+
+
+def face_distance(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor],
+                  margin: torch.Tensor) -> torch.Tensor:
+    """(N,) float64: each (wrapped) point's distance to the nearest face of its
+    box along a periodic axis that `margin` pads by less than a period (inf
+    where there is none: no image that could cut a cell is left out)."""
     n = points.shape[0]
     lo = _per_point(pbox.box[:, 0], batch, n).double()
     hi = _per_point(pbox.box[:, 1], batch, n).double()
+    short = _per_point(pbox.mask & (axis_margins(pbox, margin) < pbox.period), batch, n)
     p = points.detach().double()
     gap = torch.minimum(p - lo, hi - p).clamp_min(0)
-    gap = torch.where(pbox.mask, gap, torch.full_like(gap, math.inf))
+    gap = torch.where(short, gap, torch.full_like(gap, math.inf))
     return gap.amin(1)
 
 
@@ -271,7 +284,6 @@ def knn(points, k, queries, batch, query_batch, exclude_self, pbox: PeriodicBox)
     index = torch.full((m, k), -1, dtype=torch.int64, device=x.device)
     if m == 0 or n == 0:
         return KNN(dist2.to(out_dtype), index)
-    gap = face_distance(q, pbox, query_batch)
     margin = first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS) * max(1.0, (k / 20) ** (1 / 3))
     # clouds with no more points than a row holds: every pair at once
     counts = torch.bincount(batch, minlength=pbox.box.shape[0]) if batch is not None else torch.tensor([n], device=x.device)
@@ -283,6 +295,7 @@ def knn(points, k, queries, batch, query_batch, exclude_self, pbox: PeriodicBox)
         if rows.numel() == 0:
             break
         padded = pad(x, pbox, batch, margin)
+        gap = face_distance(q, pbox, query_batch, margin)
         extra = 1 if exclude_self else 0
         sub_batch = None if query_batch is None else query_batch[rows]
         found = _plain_knn(padded.points, k + extra, q[rows], batch=padded.batch, query_batch=sub_batch)
@@ -407,12 +420,10 @@ class PeriodicCells(NamedTuple):
 
 
 def _full_reach(pbox: PeriodicBox) -> torch.Tensor:
-    """(B,) a margin that certifies every cell: a cell lies within half a
-    period of its point along a periodic axis and inside the box along the
-    others, so twice its radius is at most this."""
-    edges = (pbox.box[:, 1] - pbox.box[:, 0]).double()
-    extent = torch.where(pbox.mask, edges / 2, edges)
-    return (2 * extent.norm(dim=1) * (1 + 1e-3)).to(pbox.box.dtype)
+    """(B,) a margin that certifies every cell: a period along every periodic
+    axis (axis_margins)."""
+    longest = torch.where(pbox.mask, pbox.period, torch.zeros_like(pbox.period)).amax(1)
+    return longest * (1 + 1e-3)
 
 
 def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> PeriodicCells:
@@ -431,7 +442,6 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
     x = wrap(given, pbox, batch)
     offset = (given - x).detach()
     n = x.shape[0]
-    gap = face_distance(x, pbox, batch)
     full = _full_reach(pbox)
     margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS), full)
     for round_ in range(MARGIN_ROUNDS + 1):
@@ -445,6 +455,7 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
             everything = _plain_voronoi(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                         memory_budget=memory_budget)
         own = VoronoiCells(*(t[padded.position] for t in everything))
+        gap = face_distance(x, pbox, batch, margin)
         within = _per_point(margin, batch, n).double() + gap
         short = _reaching_past(own, within)
         if not graph:  # the few cells that reach past the margin, alone
@@ -453,6 +464,7 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
                     break
                 margin = _wider(margin, own, short, gap, batch, full, last=again == MARGIN_ROUNDS - 1)
                 own, within = _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget)
+                gap = face_distance(x, pbox, batch, margin)
                 short = _reaching_past(own, within)
         if not bool(short.any()):
             break
@@ -503,7 +515,7 @@ def _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget):
     rows = torch.searchsorted(keep, wider.position[u])
     own = VoronoiCells(*(t.index_copy(0, u, s[rows]) for t, s in zip(own, sub)))
     reach = torch.minimum(_per_point(margin, batch, x.shape[0])[u].double() +
-                          face_distance(x[u], pbox, batch[u] if batch is not None else None),
+                          face_distance(x[u], pbox, batch[u] if batch is not None else None, margin),
                           torch.full_like(within[u], r))
     return own, within.index_copy(0, u, reach)
 
