@@ -384,3 +384,17 @@ def test_a_period_far_shorter_than_the_cells(device, dtype, gen):
     data = points.double().cpu().numpy()
     dist, _ = cKDTree(data, boxsize=[1.0, 1.0, 1e-5]).query(data, 6)
     np.testing.assert_allclose(near.dist2.double().cpu().numpy(), dist[:, 1:] ** 2, rtol=1e-6)
+
+
+def test_float32_periods_are_taken_in_float64(device):
+    """A float32 box whose edge rounds in float32: the period is the corners'
+    difference in float64 (a rounded one moved the images by 3e-13, and a
+    sliver cell beside the face of a thin slab by 2e-3)."""
+    import fuzz_cases
+
+    case = fuzz_cases.make_case(9, 34, max_n=1000)  # thin slab, points clamped to its faces
+    points = torch.as_tensor(case.points, dtype=torch.float32, device=device)
+    box = torch.as_tensor(case.boxes[0], dtype=torch.float32, device=device)
+    single = torchvor.voronoi(points, box, periodic=(True, False, True))
+    double = torchvor.voronoi(points.double(), box.double(), periodic=(True, False, True))
+    assert torch.equal(single.volume, double.volume.float())

@@ -71,6 +71,14 @@ class PeriodicBox(NamedTuple):
     def mask(self) -> torch.Tensor:
         return torch.tensor(self.axes, device=self.box.device)
 
+    def to(self, dtype: torch.dtype) -> "PeriodicBox":
+        """The same box in `dtype`, its periods the differences of its corners
+        there (a float32 period rounded, then widened, shifts float64 images by
+        that rounding: 2e-3 of a sliver cell beside a face of a thin slab)."""
+        box = self.box.to(dtype)
+        edges = box[:, 1] - box[:, 0]
+        return PeriodicBox(box, torch.where(self.mask, edges, torch.zeros_like(edges)), self.axes)
+
 
 def periodic_box(points: torch.Tensor, box, batch: Optional[torch.Tensor], axes, caller: str) -> PeriodicBox:
     """The box of a periodic call, required, with positive periods."""
@@ -257,7 +265,7 @@ def _search_inputs(points, queries, batch, query_batch, pbox: PeriodicBox, calle
     """(box in the work dtype, points, queries) of a search, wrapped into the
     box; `queries` None: the points themselves."""
     dtype = work_dtype(points)
-    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
+    pbox = pbox.to(dtype)
     x = wrap(points.to(dtype), pbox, batch)
     if queries is None:
         return pbox, x, x
@@ -437,7 +445,7 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
     from .ops import voronoi as _plain_voronoi
 
     dtype = work_dtype(points)
-    pbox = pbox._replace(box=pbox.box.to(dtype), period=pbox.period.to(dtype))
+    pbox = pbox.to(dtype)
     given = points.to(dtype)
     x = wrap(given, pbox, batch)
     offset = (given - x).detach()
