@@ -41,7 +41,11 @@ is checked for:
   walls included, summing to zero within the tolerance of its surface); each
   cloud's wall areas tiling its box's surface; and GRAPH_SAMPLE cells' face
   areas within 10 x the tolerance of the oracle's (exact where Qhull
-  disagrees) (faces_certified).
+  disagrees) (faces_certified);
+* for the same cases, the cells with the boxes periodic along some axes by
+  turns (fuzz_periodic.py): every cell computed, each cloud's volumes summing
+  to its box's, and PERIODIC_SAMPLE cells against the half-space oracle over
+  the points' images (periodic_certified).
 
 The oracle sees only the points near a cell: the nearest K of its cloud
 (cKDTree), K growing until the (K+1)-th lies beyond twice the radius of the
@@ -87,6 +91,7 @@ import torchvor  # noqa: E402
 from torchvor import CellStatus  # noqa: E402
 
 import fuzz_graph  # noqa: E402
+import fuzz_periodic  # noqa: E402
 import voronoi_checks  # noqa: E402
 from oracles import voronoi_cell_oracle  # noqa: E402
 
@@ -100,7 +105,7 @@ EXACT_MAX_FACETS = 40  # the exact oracle enumerates every triple of planes: its
 SLOWEST_CASES = 5  # the report lists the slowest cases (their time covers the checks too)
 COUNTERS = ("cases", "runs", "cells", "certified", "oracle_skipped", "failed_cells", "silently_wrong",
             "wrong_volume_sums", "unexpected_exceptions", "timeouts", "expected_errors", "second_moment_off",
-            "graphs", "faces_certified")
+            "graphs", "faces_certified", "periodic_cells", "periodic_certified")
 # any of these makes a campaign fail. second_moment_off (a cell whose volume and centroid are
 # within the guarantee, its second moment outside the same relative tolerance) is reported only.
 FAILURES = ("failed_cells", "silently_wrong", "wrong_volume_sums", "unexpected_exceptions", "timeouts")
@@ -476,6 +481,8 @@ class Campaign:
         if 0 < case.n <= self.graph_max_n and not case.expect_error:
             self.current_impl = "graph"
             self.check_graph(case, shared)
+            self.current_impl = "periodic"
+            fuzz_periodic.check_periodic(self, case, shared)
         seconds = time.perf_counter() - t0
         self.report.slowest.append({"seconds": round(seconds, 2), "case": case.describe(),
                                     "replay": replay_command(case, self.report.settings)})

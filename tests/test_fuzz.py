@@ -105,12 +105,15 @@ def test_cases_are_valid_inputs_in_their_dtype():
             assert np.all(case.points[members] >= lo) and np.all(case.points[members] <= hi), case.describe()
 
 
-def _corrupting(monkeypatch, change):
-    """fuzz's torchvor.voronoi replaced by one whose result `change` edits."""
+def _corrupting(monkeypatch, change, periodic=False):
+    """fuzz's torchvor.voronoi replaced by one whose result `change` edits
+    (the periodic calls' only with `periodic`, else the others')."""
     real = torchvor.voronoi
 
     def voronoi(*args, **kwargs):
         cells = real(*args, **kwargs)
+        if bool(kwargs.get("periodic")) != periodic:
+            return cells
         cells = torchvor.VoronoiCells(*(t.clone() for t in cells))
         change(cells)
         return cells
@@ -139,6 +142,20 @@ def test_fuzzer_flags_a_silently_wrong_cell(monkeypatch):
     assert not report.ok()
     wrong = [p for p in report.problems if p.category == "silently_wrong"]
     assert "volume" in wrong[0].message and f"--case {index}" in wrong[0].replay
+
+
+def test_fuzzer_flags_a_silently_wrong_periodic_cell(monkeypatch):
+    """A periodic cell's volume 1e-5 too large: the volume sum and, where the
+    oracle samples it, the oracle over the images catch it."""
+    index = _white_noise_case()
+
+    def change(cells):
+        cells.volume[:] *= 1 + 1e-5
+
+    _corrupting(monkeypatch, change, periodic=True)
+    report = fuzz.run_campaign(CI_SEED, [index], max_n=CI_MAX_N)
+    assert report.counts["wrong_volume_sums"] == 1 and report.counts["silently_wrong"] >= 1
+    assert any(p.cells_impl == "periodic" for p in report.problems) and not report.ok()
 
 
 def test_fuzzer_checks_float32_suspects(monkeypatch):
@@ -189,7 +206,8 @@ def test_fuzzer_flags_unexpected_exceptions(monkeypatch):
 
     monkeypatch.setattr(fuzz.torchvor, "voronoi", boom)
     report = fuzz.run_campaign(CI_SEED, [index, invalid], max_n=CI_MAX_N)
-    assert report.counts["unexpected_exceptions"] == 2 and report.counts["expected_errors"] == 0
+    # the valid case's plain and periodic calls, and the invalid case's
+    assert report.counts["unexpected_exceptions"] == 3 and report.counts["expected_errors"] == 0
     assert all("boom" in p.message for p in report.problems)
     monkeypatch.setattr(fuzz.torchvor, "voronoi", lambda *args, **kwargs: None)
     report = fuzz.run_campaign(CI_SEED, [invalid], max_n=CI_MAX_N)

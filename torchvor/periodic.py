@@ -468,8 +468,8 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
         short = _reaching_past(own, within)
         if not graph:  # the few cells that reach past the margin, alone
             for again in range(MARGIN_ROUNDS):
-                if not bool(short.any()):
-                    break
+                if not bool(short.any()) or not _few_pairs(x, own, short, pbox, batch):
+                    break  # none left, or so many that the whole cloud runs again (below)
                 margin = _wider(margin, own, short, gap, batch, full, last=again == MARGIN_ROUNDS - 1)
                 own, within = _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget)
                 gap = face_distance(x, pbox, batch, margin)
@@ -490,6 +490,21 @@ def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
     computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE)
     reach = 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
     return computed & ~(reach <= within)
+
+
+# _recompute's radius search lists this many (cell, point) pairs at most; past
+# it the whole padded cloud runs again.
+RECOMPUTE_PAIRS = 1 << 23
+
+
+def _few_pairs(x, own, short, pbox: PeriodicBox, batch) -> bool:
+    """Whether _recompute's search for the cells `short` lists at most
+    RECOMPUTE_PAIRS pairs, estimated at each cloud's mean density."""
+    counts = (torch.bincount(batch, minlength=pbox.box.shape[0]) if batch is not None
+              else torch.tensor([x.shape[0]], device=x.device)).double()
+    density = float((counts / (pbox.box[:, 1] - pbox.box[:, 0]).double().prod(1)).max())
+    r = float((2.5 * own.radius[short].detach().double() * (1 + CERTIFY_SLACK)).max())
+    return int(short.sum()) * density * 27 * min(r, float(pbox.period.max())) ** 3 <= RECOMPUTE_PAIRS
 
 
 def _wider(margin, own, short, gap, batch, full, last: bool):

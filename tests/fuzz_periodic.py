@@ -1,0 +1,87 @@
+"""The fuzzing campaign's checks of periodic boxes (tests/fuzz.py calls
+check_periodic on every case small enough): the case's cells with its boxes
+periodic along some axes (by turns: all three, x and z, y alone), every cell
+computed, each cloud's volumes summing to its box's, and sampled cells
+against the half-space oracle over the points' images."""
+from __future__ import annotations
+
+import traceback
+import warnings
+from typing import Dict
+
+import numpy as np
+import torch
+
+import torchvor
+from torchvor import CellStatus
+
+from oracles import periodic_cell_oracle
+
+PERIODIC_SAMPLE = 2         # cells of a case whose periodic cell goes to the oracle
+PERIODIC_ORACLE_MAX_N = 800  # clouds up to this size (the oracle holds 27 images of each point)
+AXES = ((True, True, True), (True, False, True), (False, True, False))
+
+
+def wrapped(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, axes) -> np.ndarray:
+    """The points moved into [lo, hi) along the periodic axes (numpy, float64)."""
+    period = hi - lo
+    moved = np.where(axes, lo + np.mod(points - lo, period), points)
+    return np.where(np.asarray(axes) & (moved >= hi), lo, moved)
+
+
+def check_periodic(campaign, case, shared: Dict) -> None:
+    from fuzz import CELL_RTOL, SUM_RTOL  # fuzz.py imports this module
+
+    kind, dtype = case.kind, case.dtype
+    axes = AXES[case.index % len(AXES)]
+    try:
+        points, _box, batch = case.arguments(campaign.device)
+        boxes = torch.tensor(case.boxes, dtype=dtype).to(campaign.device)
+        box = boxes if batch is not None else boxes[0]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cells = torchvor.voronoi(points, box, batch=batch, periodic=axes, on_failure="flag")
+    except Exception as error:  # noqa: BLE001 - every exception is a finding
+        campaign.report.add(kind, "unexpected_exceptions")
+        campaign.problem(case, "periodic", "unexpected_exception",
+                         f"periodic {axes}: " + "".join(traceback.format_exception_only(type(error), error)).strip())
+        return
+    campaign.report.add(kind, "periodic_cells", case.n)
+    volume = cells.volume.cpu().double().numpy()
+    status = cells.status.cpu().numpy()
+    ok = (status == CellStatus.SUCCESS) | (status == CellStatus.DUPLICATE)
+    if not ok.all():
+        campaign.report.add(kind, "failed_cells", int((~ok).sum()))
+        campaign.problem(case, "periodic", "failed", f"periodic {axes}: {int((~ok).sum())} cells failed "
+                                                     f"(statuses {sorted(set(status[~ok].tolist()))})")
+        return
+    rng = np.random.default_rng([case.seed, case.index, 7])
+    for cloud, members, (lo, hi) in case.clouds():
+        expected = float(np.prod(hi - lo))
+        got = volume[members].sum()
+        if not abs(got - expected) <= SUM_RTOL[dtype] * expected:
+            campaign.report.add(kind, "wrong_volume_sums")
+            campaign.problem(case, "periodic", "volume_sum",
+                             f"periodic {axes}, cloud {cloud}: volumes sum to {got!r}, the box's is {expected!r}")
+        if len(members) > PERIODIC_ORACLE_MAX_N:
+            continue
+        cloud_points = wrapped(case.points[members].astype(np.float64), lo, hi, axes)
+        for local in rng.choice(len(members), size=min(PERIODIC_SAMPLE, len(members)), replace=False):
+            try:
+                oracle = periodic_cell_oracle(cloud_points, int(local), (lo, hi), axes)
+            except Exception as error:  # noqa: BLE001 - Qhull's limits, not torchvor's
+                campaign.report.add(kind, "oracle_skipped")
+                campaign.note(f"periodic oracle error: {type(error).__name__}")
+                continue
+            mine = volume[members[local]]
+            if oracle.duplicate:
+                good = mine == 0
+            else:
+                good = abs(mine - oracle.volume) <= CELL_RTOL[dtype] * oracle.volume
+            if good:
+                campaign.report.add(kind, "periodic_certified")
+            else:
+                campaign.report.add(kind, "silently_wrong")
+                campaign.problem(case, "periodic", "periodic",
+                                 f"periodic {axes}, cell {int(members[local])}: volume {mine!r}, oracle over the "
+                                 f"images {oracle.volume!r} (duplicate {oracle.duplicate})")
