@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, then run the steps named (default: cudatests):
 # the tests (CPU and CUDA), the benchmarks, profiles and sanitizers; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
+#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|periodic|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
 # compare needs BASELINE=<source tree of another commit> (e.g. `git archive <commit> | tar -x -C .baseline`):
 # it is built beside this tree, its CUDA outputs compared bit for bit, and both timed in turns.
 set -u -o pipefail
@@ -54,9 +54,19 @@ status=0
 for step in "${@:-cudatests}"; do
   case "$step" in
     tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -15 || status=1 ;;
-    cudatests)  # CUDA_TESTS_K narrows them (a pytest -k expression, and-ed with "cuda")
-      python3 -m pytest -q -p no:cacheprovider -k "cuda${CUDA_TESTS_K:+ and ($CUDA_TESTS_K)}" tests 2>&1 \
-        | tee "$OUT/cudatests.log" | grep -E "passed|failed|Error|assert" | tail -30 || status=1 ;;
+    cudatests)  # CUDA_TESTS_K narrows them (a pytest -k expression, and-ed with "cuda"); with several GPUs
+                # visible, one pytest a GPU, each an interleaved share of the tests (tests/conftest.py's --shard)
+      gpus=$(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)
+      [ -z "${CUDA_VISIBLE_DEVICES:-}" ] || gpus=$(echo "$CUDA_VISIBLE_DEVICES" | tr ',' '\n' | wc -l)
+      visible=(${CUDA_VISIBLE_DEVICES:+${CUDA_VISIBLE_DEVICES//,/ }}); [ ${#visible[@]} -gt 0 ] || visible=($(seq 0 $((gpus - 1))))
+      for shard in $(seq 0 $((gpus - 1))); do
+        CUDA_VISIBLE_DEVICES=${visible[$shard]} python3 -m pytest -q -p no:cacheprovider --shard $shard/$gpus \
+          -k "cuda${CUDA_TESTS_K:+ and ($CUDA_TESTS_K)}" tests > "$OUT/cudatests.$shard.log" 2>&1 &
+      done
+      wait
+      cat "$OUT"/cudatests.*.log > "$OUT/cudatests.log"; rm -f "$OUT"/cudatests.*.log
+      grep -E "passed|failed|Error|assert" "$OUT/cudatests.log" | tail -30
+      ! grep -qE "[0-9]+ (failed|error)" "$OUT/cudatests.log" || status=1 ;;
     bench)
       python3 benchmarks/bench_knn.py --device cuda --sizes 1M --k 35 --points jittered --methods torchvor,ckdtree 2>&1 | tee "$OUT/bench_knn.log"
       python3 benchmarks/bench_knn.py --device cuda --sizes 10M --k 190 --points uniform --methods torchvor 2>&1 | tee -a "$OUT/bench_knn.log"
@@ -64,6 +74,10 @@ for step in "${@:-cudatests}"; do
       python3 benchmarks/bench_voronoi.py --device cuda --sizes 100M --kinds blue 2>&1 | tee -a "$OUT/bench_voronoi.log"
       python3 benchmarks/bench_lloyd.py --device cuda 2>&1 | tee "$OUT/bench_lloyd.log"
       python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M 2>&1 | tee "$OUT/bench_graph.log" ;;
+    periodic)  # voronoi and knn with periodic=True against plain (1M, 10M blue and white, float32 and float64)
+      for dtype in float32 float64; do
+        python3 benchmarks/bench_periodic.py --device cuda --sizes 1M,10M --repeats 3 --dtype $dtype 2>&1 | tee -a "$OUT/bench_periodic.log"
+      done ;;
     graph)  # voronoi_graph and the cells' backward against voronoi (1M, 10M blue and white)
       python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 --profile 2>&1 | tee "$OUT/bench_graph.log" ;;
     compare)
@@ -102,10 +116,12 @@ import torch, torchvor
 p = torch.load('/tmp/jittered_1m.pt').cuda()
 torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.synchronize()
 " 2>&1 | grep -v '^==PROF==' | tee "$OUT/ncu.log" | grep -E "Duration|Throughput|Registers|Achieved Occupancy|Theoretical Occupancy|Stall|Warp Cycles|Local|L1/TEX Hit|L2 Hit|Eligible|Issued|Block Limit|Dynamic|Static|Executed Ipc" ;;
-    sanitize)  # white noise (SANITIZE_N points) under each SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
+    sanitize)  # under each of SANITIZE_TOOLS (default memcheck racecheck synccheck):
+               # white noise (SANITIZE_N points; SANITIZE_N=0: none) under each SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
                # e.g. "default TORCHVOR_CELLS=cooperative,TORCHVOR_CELL_START=box"
-      for setting in ${SANITIZE_SETTINGS:-default}; do
-        for tool in memcheck racecheck synccheck; do
+      tools=${SANITIZE_TOOLS:-memcheck racecheck synccheck}
+      for setting in $( [ "${SANITIZE_N:-1}" = 0 ] || echo ${SANITIZE_SETTINGS:-default}); do
+        for tool in $tools; do
           echo "$tool: $setting" | tee -a "$OUT/sanitize.log"
           env $( [ "$setting" = default ] || echo "${setting//,/ }" ) \
             compute-sanitizer --tool $tool --error-exitcode 9 python3 -c "
@@ -123,7 +139,7 @@ torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(
       done
       # and a slice of the fuzzing campaign (SANITIZE_FUZZ_CASES cases of up to SANITIZE_FUZZ_MAX_N
       # points, thread and warp cells, seed SANITIZE_FUZZ_SEED) under each tool
-      for tool in memcheck racecheck synccheck; do
+      for tool in $tools; do
         echo "$tool: fuzz slice" | tee -a "$OUT/sanitize.log"
         compute-sanitizer --tool $tool --error-exitcode 9 python3 tests/fuzz.py --device cuda --cells all \
           --cases ${SANITIZE_FUZZ_CASES:-30} --seed ${SANITIZE_FUZZ_SEED:-1} --max-n ${SANITIZE_FUZZ_MAX_N:-3000} \

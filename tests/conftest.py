@@ -84,3 +84,22 @@ def pytest_runtest_makereport(item, call):
             if name == "seed":
                 report.sections.append(
                     ("torchvor seed", f"replay with TORCHVOR_TEST_SEED={value} pytest '{item.nodeid}'"))
+
+
+def pytest_addoption(parser):
+    parser.addoption("--shard", default=None, metavar="I/N",
+                     help="run only the I-th of N interleaved shares of the selected tests (0 <= I < N), "
+                          "so N processes (one a GPU) run a selection between them")
+
+
+@pytest.hookimpl(trylast=True)  # after -k and -m have deselected theirs
+def pytest_collection_modifyitems(config, items):
+    shard = config.getoption("shard")
+    if not shard:
+        return
+    index, count = (int(part) for part in shard.split("/"))
+    if not 0 <= index < count:
+        raise pytest.UsageError(f"--shard {shard}: want I/N with 0 <= I < N")
+    kept = [item for position, item in enumerate(items) if position % count == index]
+    config.hook.pytest_deselected(items=[item for position, item in enumerate(items) if position % count != index])
+    items[:] = kept

@@ -1,0 +1,62 @@
+"""Periodic boxes against plain ones: torchvor.voronoi and knn of the same points in the
+unit cube, with periodic=True and without.
+
+    python benchmarks/bench_periodic.py [--device cpu|cuda] [--sizes 1M,10M] [--kinds blue,white] [--dtype float64]
+
+A periodic call pads the cloud with the images near the box's faces and computes the
+padded cloud's cells; the ratio periodic / plain is what the padding and the cells that
+reach past it cost.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import common  # noqa: E402
+import torchvor  # noqa: E402
+
+UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+
+
+def main():
+    parser = common.base_parser(__doc__.split("\n\n")[0])
+    parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
+    parser.add_argument("--knn-k", type=int, default=16, help="k of the kNN rows (0: no kNN rows)")
+    args = parser.parse_args()
+    device, dtype = common.setup(args)
+    sizes = args.sizes or [100_000, 1_000_000]
+    notes = [f"points in the unit cube, {args.dtype}, default k (the pilot's); median of {args.repeats} runs "
+             f"after {args.warmup} warm-up run(s); knn with k={args.knn_k}, the box given in both calls."]
+    rows = []
+    for kind in args.kinds.split(","):
+        for n in sizes:
+            points, _ = common.make_points(kind, n, seed=args.seed, dtype=dtype, device=device,
+                                           cache_dir=args.cache_dir, blue_iters=args.blue_iters)
+            n = points.shape[0]
+            timed = {}
+            for label, periodic in (("plain", False), ("periodic", True)):
+                timed[label] = common.time_fn(lambda: torchvor.voronoi(points, UNIT, periodic=periodic),
+                                              device, args.warmup, args.repeats)
+                if args.knn_k:
+                    timed["knn " + label] = common.time_fn(
+                        lambda: torchvor.knn(points, args.knn_k, box=UNIT, periodic=periodic),
+                        device, args.warmup, args.repeats)
+            volume = torchvor.voronoi(points, UNIT, periodic=True).volume.double().sum().item()
+            common.log(f"{kind} n={n}: " + ", ".join(f"{k} {common.fmt_s(v)}" for k, v in timed.items())
+                       + f"; periodic volume sum - 1 = {volume - 1:.2e}")
+            row = [kind, common.npoints_label(n), common.fmt_s(timed["plain"]), common.fmt_s(timed["periodic"]),
+                   common.fmt_ratio(timed["periodic"] / timed["plain"])]
+            if args.knn_k:
+                row += [common.fmt_s(timed["knn plain"]), common.fmt_s(timed["knn periodic"]),
+                        common.fmt_ratio(timed["knn periodic"] / timed["knn plain"])]
+            rows.append(row)
+            points = None
+    headers = ["points", "n", "voronoi s", "periodic voronoi s", "periodic / plain"]
+    if args.knn_k:
+        headers += ["knn s", "periodic knn s", "periodic / plain"]
+    common.print_results("Periodic boxes", headers, rows, notes)
+
+
+if __name__ == "__main__":
+    main()
