@@ -174,22 +174,29 @@ TV_HD bool beyond_security_radius(T neighbor_dist2, T cell_radius2, T tolerance)
   return neighbor_dist2 > T(4) * slack * cell_radius2;
 }
 
-// A float cell's vertices are rounded to about eps times their distance from
-// the seed. While they lie more than 4096 times farther than a bisector
-// (a box start, or a long wedge, cut by neighbours a few ulps away), that
-// rounding is not small beside the bisector's distance: a vertex within 8
-// roundings of it (rounding_could_cut) may fall on either side, and a wrong
-// side is a wrong cell. The cell is then recomputed in double
-// (kIllConditioned). Never in double: its rounding is 2^29 times finer.
-// Eight roundings, not more: axis-aligned planes (anisotropic lattices)
-// round far less than this bound on the Euclidean radius assumes.
+// A cell's vertices are rounded to about eps times their distance from the
+// seed. While they lie far beyond a bisector (a box start, or a long wedge,
+// cut by neighbours a few ulps away), that rounding is not small beside the
+// bisector's distance, and wrong sides or wrong lines where nearly parallel
+// bisectors meet make a wrong cell. It is then recomputed wider
+// (kIllConditioned). float: beyond 4096 times the bisector's distance, and
+// only where a vertex lies within 8 roundings of it (rounding_could_cut;
+// not more: axis-aligned planes, as anisotropic lattices have, round far
+// less than this bound on the Euclidean radius assumes). double, whose
+// rounding is 2^29 times finer: beyond 2^32 times, whatever the vertices
+// (the line where two bisectors of points a few ulps apart meet slides by
+// eps |v| / sine, across the cell: no vertex need come near the plane).
 template <typename T>
 TV_HD bool far_beside_bisector(T r2, T radius2) {
-  return std::is_same<T, float>::value && r2 * T(16777216) < radius2;  // |r| < 2^-12 sqrt(radius2)
+  if constexpr (std::is_same<T, float>::value) return r2 * T(16777216) < radius2;  // |r| < 2^-12 sqrt(radius2)
+  if constexpr (std::is_same<T, double>::value) return r2 * T(18446744073709551616.0) < radius2;  // |r| < 2^-32
+  return false;
 }
-// `value`: the plane's at a vertex (n . v + o, |n| = |r|); band2: r2 * radius2.
+// `value`: the plane's at a vertex (n . v + o, |n| = |r|); band2: r2 * radius2
+// (0: never).
 template <typename T>
 TV_HD bool rounding_could_cut(T value, T band2) {
+  if constexpr (!std::is_same<T, float>::value) return band2 > T(0);
   const T scaled = value * T(2097152);  // |value| < 2^-21 |r| sqrt(radius2)
   return scaled * scaled < band2;
 }
