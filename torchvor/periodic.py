@@ -160,37 +160,67 @@ class Padded(NamedTuple):
     box: torch.Tensor                # (B, 2, 3): the box widened by the margin on the periodic axes
 
 
-def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor) -> Padded:
+def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor,
+        one_sided: bool = False) -> Padded:
     """`points` (wrapped) and every image of them within `margin` (B,) of the
     box along the periodic axes (on all of them at once), the margin capped
-    at a period along each axis (axis_margins)."""
+    at a period along each axis (axis_margins); `position` the points' own rows.
+
+    one_sided: every image below lo instead, to a depth of twice the margin,
+    and a point within the margin of hi has its own cell at its image below
+    lo (`position`). Every cell then keeps the same clearance as with images
+    on both sides, and an image is ``x - k (hi - lo)`` for x near hi: exact
+    in floating point where x and the period share their binade's spacing
+    (a box [0, L], say), where ``x + (hi - lo)`` for x near lo rounds away
+    the fine digits of points near 0."""
     n, device = points.shape[0], points.device
     lo = _per_point(pbox.box[:, 0], batch, n)
     hi = _per_point(pbox.box[:, 1], batch, n)
     period = _per_point(pbox.period, batch, n)
-    m = _per_point(axis_margins(pbox, margin), batch, n)
+    margins = axis_margins(pbox, margin)
+    depth = 2 * margins if one_sided else margins
+    m = _per_point(margins, batch, n)
+    d = _per_point(depth, batch, n)
     periodic = pbox.mask
     with torch.no_grad():
-        # points with an image within the margin: near a periodic face (all of them where it is a period)
-        near = (((points - lo) < m) | ((hi - points) < m) | (m >= period)) & periodic
+        if one_sided:
+            # below lo, down to lo - d: images of the points within d of hi, two periods deep at most
+            near = ((hi - points) <= d) & periodic
+            deep = bool((depth > pbox.period).any())
+            steps = [range(-2 if deep else -1, 1) if a else range(1) for a in pbox.axes]
+            own_shift = torch.where(periodic & ((hi - points) < m), -1, 0)
+        else:
+            # points with an image within the margin: near a periodic face (all of them where it is a period)
+            near = (((points - lo) < m) | ((hi - points) < m) | (m >= period)) & periodic
+            steps = [range(-1, 2) if a else range(1) for a in pbox.axes]
+            own_shift = torch.zeros_like(points, dtype=torch.int64)
         candidates = near.any(1).nonzero().squeeze(1)
         sources, shifts = [], []
+        position = torch.arange(n, device=device)
+        rows = n
         if candidates.numel():
-            p, low, high, per, mm = (t[candidates] for t in (points, lo, hi, period, m))
-            for shift in itertools.product(*(range(-1, 2) if a else range(1) for a in pbox.axes)):
+            p, low, high, per, dd = (t[candidates] for t in (points, lo, hi, period, d))
+            own = own_shift[candidates]
+            for shift in itertools.product(*steps):
                 if not any(shift):
                     continue
-                s = torch.tensor(shift, dtype=points.dtype, device=device)
-                image = p + s * per
-                keep = ((image >= low - mm) & (image <= high + mm)) | ~periodic
+                s = torch.tensor(shift, device=device)
+                image = p + s.to(points.dtype) * per
+                keep = ((image >= low - dd) & (image <= high + (0 if one_sided else dd))) | ~periodic
+                if one_sided:
+                    keep &= (image < high) | ~periodic
                 keep = keep.all(1)
-                sources.append(candidates[keep])
-                shifts.append(torch.tensor(shift, device=device).expand(int(keep.sum()), 3))
+                kept = candidates[keep]
+                if one_sided:  # the points whose own cell is this image
+                    mine = (own[keep] == s).all(1)
+                    position[kept[mine]] = rows + mine.nonzero().squeeze(1)
+                sources.append(kept)
+                shifts.append(s.expand(kept.numel(), 3))
+                rows += kept.numel()
         source = torch.cat([torch.arange(n, device=device), *sources])
         shift = torch.cat([torch.zeros(n, 3, dtype=torch.int64, device=device), *shifts])
     images = points[source[n:]] + shift[n:].to(points.dtype) * period[source[n:]]
     padded = torch.cat([points, images])
-    position = torch.arange(n, device=device)
     padded_batch = None
     if batch is not None:
         with torch.no_grad():
@@ -198,15 +228,35 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
             order = torch.sort(padded_batch, stable=True).indices
             padded_batch = padded_batch[order]
             source, shift = source[order], shift[order]
-            position = torch.empty_like(order)
-            position[order] = torch.arange(order.numel(), device=device)
-            position = position[:n]
+            row_of = torch.empty_like(order)
+            row_of[order] = torch.arange(order.numel(), device=device)
+            position = row_of[position]
         padded = padded[order]
     widened = pbox.box.clone()
-    grow = axis_margins(pbox, margin).to(widened.dtype)
+    grow = depth.to(widened.dtype)
     widened[:, 0] -= grow
-    widened[:, 1] += grow
+    if not one_sided:
+        widened[:, 1] += grow
     return Padded(padded, source, shift, padded_batch, position, widened)
+
+
+def images_exact(given: torch.Tensor, x: torch.Tensor, padded: Padded, pbox: PeriodicBox,
+                 batch: Optional[torch.Tensor]) -> bool:
+    """Whether the wrapped points `x` and every image of `padded` are the given
+    points moved by exactly whole periods: the box's true periods, the
+    differences of its corners taken in float64 (exact for float32)."""
+    with torch.no_grad():
+        n = x.shape[0]
+        box = pbox.box.double()
+        true_period = _per_point(torch.where(pbox.mask, box[:, 1] - box[:, 0], torch.zeros_like(box[:, 0])), batch, n)
+        safe = torch.where(true_period > 0, true_period, torch.ones_like(true_period))
+        moved = given.detach().double() - x.detach().double()
+        if not bool((moved == torch.round(moved / safe) * true_period).all()):
+            return False
+        image = padded.shift.any(1)
+        src = padded.source[image]
+        expected = x.detach()[src].double() + padded.shift[image].double() * true_period[src]
+        return bool((padded.points[image].detach().double() == expected).all())
 
 
 def axis_margins(pbox: PeriodicBox, margin: torch.Tensor) -> torch.Tensor:
@@ -421,8 +471,9 @@ def _lexsort(keys):
 # ---- Voronoi cells -----------------------------------------------------------
 
 class PeriodicCells(NamedTuple):
-    cells: VoronoiCells
-    offset: torch.Tensor       # (N, 3): each point minus its wrapped position
+    cells: VoronoiCells        # in the work dtype
+    offset: torch.Tensor       # (N, 3) float64: each point minus the seed of its cell in `padded`
+    wrap_offset: torch.Tensor  # (N, 3) float64: each point minus its wrapped position
     padded: Padded
     graph: Optional[object]    # the padded cloud's VoronoiGraph, where asked
 
@@ -434,26 +485,42 @@ def _full_reach(pbox: PeriodicBox) -> torch.Tensor:
     return longest * (1 + 1e-3)
 
 
+class _InexactImages(Exception):
+    """A float32 call's images would round: it runs again in float64."""
+
+
 def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> PeriodicCells:
     """The periodic cells of `points` (and the padded cloud's graph with
-    `graph`), in the work dtype: padded with images until every computed
-    cell is certified (module docstring). Without `graph`, the cells that
-    reach past the margin are computed again alone, among the points within
-    their reach of a wider padding; with it, everything is (the edges of a
-    cell come with their neighbours')."""
+    `graph`): padded below lo with images (pad's one_sided) until every
+    computed cell is certified (module docstring). Without `graph`, the cells
+    that reach past the margin are computed again alone, among the points
+    within their reach of a wider padding; with it, everything is (the edges
+    of a cell come with their neighbours'). float32 points are computed in
+    float32 where every image is exact (images_exact), else in float64."""
+    if points.dtype == torch.float32:
+        try:
+            return _cells(points, pbox, batch, k, memory_budget, graph, torch.float32)
+        except _InexactImages:
+            pass
+    return _cells(points, pbox, batch, k, memory_budget, graph, work_dtype(points))
+
+
+def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtype: torch.dtype) -> PeriodicCells:
     from .graph import voronoi_graph as _plain_graph
     from .ops import voronoi as _plain_voronoi
 
-    dtype = work_dtype(points)
+    exact_only = dtype == torch.float32
+    given_box = pbox
     pbox = pbox.to(dtype)
     given = points.to(dtype)
     x = wrap(given, pbox, batch)
-    offset = (given - x).detach()
     n = x.shape[0]
     full = _full_reach(pbox)
     margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS), full)
     for round_ in range(MARGIN_ROUNDS + 1):
-        padded = pad(x, pbox, batch, margin)
+        padded = pad(x, pbox, batch, margin, one_sided=True)
+        if exact_only and not images_exact(points, x, padded, given_box, batch):
+            raise _InexactImages()
         if graph:
             result = _plain_graph(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                   memory_budget=memory_budget)
@@ -463,23 +530,40 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
             everything = _plain_voronoi(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                         memory_budget=memory_budget)
         own = VoronoiCells(*(t[padded.position] for t in everything))
-        gap = face_distance(x, pbox, batch, margin)
-        within = _per_point(margin, batch, n).double() + gap
+        seed = padded.points.detach()[padded.position]  # where each point's cell was computed
+        within = clearance(padded, pbox, batch, margin)
         short = _reaching_past(own, within)
         if not graph:  # the few cells that reach past the margin, alone
             for again in range(MARGIN_ROUNDS):
                 if not bool(short.any()) or not _few_pairs(x, own, short, pbox, batch):
                     break  # none left, or so many that the whole cloud runs again (below)
-                margin = _wider(margin, own, short, gap, batch, full, last=again == MARGIN_ROUNDS - 1)
-                own, within = _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget)
-                gap = face_distance(x, pbox, batch, margin)
+                margin = _wider(margin, own, short, x, pbox, batch, full, last=again == MARGIN_ROUNDS - 1)
+                own, within, seed = _recompute(points if exact_only else None, given_box, x, pbox, batch, own,
+                                               within, seed, short, margin, k, memory_budget)
                 short = _reaching_past(own, within)
         if not bool(short.any()):
             break
         if bool((margin >= full).all()):
             raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
-        margin = _wider(margin, own, short, gap, batch, full, last=round_ == MARGIN_ROUNDS - 1)
-    return PeriodicCells(own, offset, padded, result)
+        margin = _wider(margin, own, short, x, pbox, batch, full, last=round_ == MARGIN_ROUNDS - 1)
+    with torch.no_grad():
+        wrap_offset = given.double() - x.double()
+        offset = given.double() - seed.double()
+    return PeriodicCells(own, offset, wrap_offset, padded, result)
+
+
+def clearance(padded: Padded, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor) -> torch.Tensor:
+    """(N,) float64: the distance from each point's own cell seed (its row
+    `position`) to the nearest face of the padded box along a periodic axis
+    that `margin` pads by less than a period (inf where there is none: no
+    image that could cut a cell is left out)."""
+    n = padded.position.numel()
+    box = padded.box.double()
+    lo, hi = _per_point(box[:, 0], batch, n), _per_point(box[:, 1], batch, n)
+    short = _per_point(pbox.mask & (axis_margins(pbox, margin) < pbox.period), batch, n)
+    p = padded.points.detach()[padded.position].double()
+    gap = torch.minimum(p - lo, hi - p).clamp_min(0)
+    return torch.where(short, gap, torch.full_like(gap, math.inf)).amin(1)
 
 
 def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
@@ -507,50 +591,72 @@ def _few_pairs(x, own, short, pbox: PeriodicBox, batch) -> bool:
     return int(short.sum()) * density * 27 * min(r, float(pbox.period.max())) ** 3 <= RECOMPUTE_PAIRS
 
 
-def _wider(margin, own, short, gap, batch, full, last: bool):
+def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, last: bool):
     """The margin the cells `short` ask for (a quarter more), at least a
-    quarter more than before, at most `full` (the last round: `full`)."""
+    quarter more than before, at most `full` (the last round: `full`).
+    With one-sided padding a point at distances b above lo and a below hi
+    along an axis is certified, for a reach c, by a margin of (c - b) / 2
+    (its cell in place, where a >= c), or of (c + a) / 2 and more than a
+    (its cell at its image below lo)."""
     if last:
         return full
-    need = (2 * own.radius[short].detach().double() * (1 + CERTIFY_SLACK) - gap[short]) * 1.25
+    u = short.nonzero().squeeze(1)
+    sub_batch = batch[u] if batch is not None else None
+    lo = _per_point(pbox.box[:, 0], sub_batch, u.numel()).double()
+    hi = _per_point(pbox.box[:, 1], sub_batch, u.numel()).double()
+    p = x[u].detach().double()
+    below, above = p - lo, hi - p
+    c = (2 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).unsqueeze(1)
+    in_place = torch.where(above >= c, ((c - below) / 2).clamp_min(0), torch.full_like(above, math.inf))
+    at_image = torch.maximum((c + above) / 2, above * (1 + 1e-6))
+    per_axis = torch.where(pbox.mask, torch.minimum(in_place, at_image),
+                           torch.zeros_like(above))
+    need = per_axis.amax(1) * 1.25
     wanted = torch.zeros_like(margin).scatter_reduce(
-        0, batch[short] if batch is not None else torch.zeros_like(need, dtype=torch.int64),
-        need.to(margin.dtype), "amax")
+        0, sub_batch if sub_batch is not None else torch.zeros_like(u), need.to(margin.dtype), "amax")
     return torch.minimum(torch.maximum(1.25 * margin, wanted), full)
 
 
-def _recompute(x, pbox, batch, own, within, short, margin, k, memory_budget):
+def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, margin, k, memory_budget):
     """The cells `short` computed again among the points of the cloud padded
     by `margin` that lie within a quarter more than their reach: their rows
-    of `own` replaced, and `within` with the distance to the nearest point
-    left out (the padding's edge, or that reach)."""
+    of `own` replaced, `within` with the distance to the nearest point left
+    out (the padding's edge, or that reach), and `seed` with where they were
+    computed. `points`: the given float32
+    points whose images must be exact (images_exact), or None."""
     from .ops import voronoi as _plain_voronoi
     from .radius import radius as _plain_radius
 
     u = short.nonzero().squeeze(1)
-    wider = pad(x, pbox, batch, margin)
+    wider = pad(x, pbox, batch, margin, one_sided=True)
+    if points is not None and not images_exact(points, x, wider, given_box, batch):
+        raise _InexactImages()
     r = float((2.5 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).max())
-    found = _plain_radius(wider.points.detach(), r, x[u].detach(), batch=wider.batch,
+    seeds = wider.position[u]
+    found = _plain_radius(wider.points.detach(), r, wider.points[seeds].detach(), batch=wider.batch,
                           query_batch=batch[u] if batch is not None else None)
-    keep = torch.unique(torch.cat([found.edge_index[0], wider.position[u]]))  # sorted: batch order kept
+    keep = torch.unique(torch.cat([found.edge_index[0], seeds]))  # sorted: batch order kept
     sub = _plain_voronoi(wider.points[keep], wider.box, batch=wider.batch[keep] if batch is not None else None,
                          k=k, on_failure="flag", memory_budget=memory_budget)
-    rows = torch.searchsorted(keep, wider.position[u])
+    rows = torch.searchsorted(keep, seeds)
     own = VoronoiCells(*(t.index_copy(0, u, s[rows]) for t, s in zip(own, sub)))
-    reach = torch.minimum(_per_point(margin, batch, x.shape[0])[u].double() +
-                          face_distance(x[u], pbox, batch[u] if batch is not None else None, margin),
-                          torch.full_like(within[u], r))
-    return own, within.index_copy(0, u, reach)
+    reach = torch.minimum(clearance(wider, pbox, batch, margin)[u], torch.full_like(within[u], r))
+    return own, within.index_copy(0, u, reach), seed.index_copy(0, u, wider.points.detach()[seeds])
 
 
 def voronoi(points, pbox, batch, k, memory_budget) -> VoronoiCells:
     """torchvor.voronoi on the torus: centroids near their points (each
     point plus the centroid's offset from it within the cell)."""
     found = cells(points, pbox, batch, k, memory_budget, graph=False)
+    return _caller_cells(found, points.dtype)
+
+
+def _caller_cells(found: PeriodicCells, dtype: torch.dtype) -> VoronoiCells:
+    """The cells in the caller's dtype, centroids moved to the given points."""
     c = found.cells
-    dtype = points.dtype
-    return VoronoiCells(c.volume.to(dtype), (c.centroid + found.offset).to(dtype), c.second_moment.to(dtype),
-                        c.status, c.neighbors_needed, c.radius.to(dtype))
+    centroid = (c.centroid.double() + found.offset).to(dtype)
+    return VoronoiCells(c.volume.to(dtype), centroid, c.second_moment.to(dtype), c.status, c.neighbors_needed,
+                        c.radius.to(dtype))
 
 
 def voronoi_graph(points, pbox, batch, k, memory_budget):
@@ -559,14 +665,16 @@ def voronoi_graph(points, pbox, batch, k, memory_budget):
     found = cells(points, pbox, batch, k, memory_budget, graph=True)
     padded, graph = found.padded, found.graph
     dtype = points.dtype
-    original = (padded.shift == 0).all(1)
+    n = points.shape[0]
+    own_row = torch.zeros(padded.points.shape[0], dtype=torch.bool, device=points.device)
+    own_row[padded.position] = True
     j_row, i_row = graph.edge_index
-    keep = original[i_row]
+    keep = own_row[i_row]
     j_row, i_row = j_row[keep], i_row[keep]
     i, j = padded.source[i_row], padded.source[j_row]
-    n = points.shape[0]
-    period = _per_point(pbox.period.to(found.offset.dtype), batch, n)
-    shift = image_shift(found.offset[j], found.offset[i], padded.shift[j_row], period[i])
+    period = _per_point(pbox.period.double(), batch, n)
+    shift = image_shift(found.wrap_offset[j], found.wrap_offset[i], padded.shift[j_row] - padded.shift[i_row],
+                        period[i])
     if shift.numel() and int(shift.abs().max()) > 127:
         raise ValueError("torchvor.voronoi_graph: points lie more than 127 periods from the box; "
                          "wrap them into it first (shift is int8)")
@@ -574,9 +682,7 @@ def voronoi_graph(points, pbox, batch, k, memory_budget):
     order = _lexsort([i, j, code])
     i, j, shift, i_row = i[order], j[order], shift[order], i_row[order]
     area = graph.area[keep][order]
-    centroid = graph.centroid[keep][order] + found.offset[i].to(graph.centroid.dtype)
-    c = found.cells
-    cells_out = VoronoiCells(c.volume.to(dtype), (c.centroid + found.offset).to(dtype), c.second_moment.to(dtype),
-                             c.status, c.neighbors_needed, c.radius.to(dtype))
+    centroid = graph.centroid[keep][order].double() + found.offset[i]
+    cells_out = _caller_cells(found, dtype)
     wall_area = graph.wall_area[padded.position].to(dtype)
     return cells_out, torch.stack([j, i]), area.to(dtype), centroid.to(dtype), wall_area, shift.to(torch.int8)
