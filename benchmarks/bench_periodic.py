@@ -14,15 +14,35 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
+import torch  # noqa: E402
 import torchvor  # noqa: E402
 
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+
+
+def profile(points, device, knn_k, label):
+    """Print the operators and kernels of one periodic voronoi call (and knn), by self time."""
+    from torch.profiler import ProfilerActivity, profile as torch_profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    calls = [("voronoi", lambda: torchvor.voronoi(points, UNIT, periodic=True))]
+    if knn_k:
+        calls.append(("knn", lambda: torchvor.knn(points, knn_k, box=UNIT, periodic=True)))
+    for name, fn in calls:
+        with torch_profile(activities=activities) as prof:
+            fn()
+            common.synchronize(device)
+        common.log(f"profile of periodic {name}, {label}:\n" + prof.key_averages().table(
+            sort_by=sort, row_limit=16, max_name_column_width=60))
 
 
 def main():
     parser = common.base_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
     parser.add_argument("--knn-k", type=int, default=16, help="k of the kNN rows (0: no kNN rows)")
+    parser.add_argument("--profile", action="store_true",
+                        help="profile one periodic voronoi call (and knn) at the largest size of each kind")
     args = parser.parse_args()
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000, 1_000_000]
@@ -43,6 +63,8 @@ def main():
                         lambda: torchvor.knn(points, args.knn_k, box=UNIT, periodic=periodic),
                         device, args.warmup, args.repeats)
             volume = torchvor.voronoi(points, UNIT, periodic=True).volume.double().sum().item()
+            if args.profile and n >= 0.99 * max(sizes):
+                profile(points, device, args.knn_k, f"{kind} n={n}")
             common.log(f"{kind} n={n}: " + ", ".join(f"{k} {common.fmt_s(v)}" for k, v in timed.items())
                        + f"; periodic volume sum - 1 = {volume - 1:.2e}")
             row = [kind, common.npoints_label(n), common.fmt_s(timed["plain"]), common.fmt_s(timed["periodic"]),

@@ -348,6 +348,7 @@ def knn(points, k, queries, batch, query_batch, exclude_self, pbox: PeriodicBox)
     small = _per_point(counts, query_batch, m) <= k + int(bool(exclude_self))
     brute = [torch.arange(m, device=x.device)[small]]
     rows = torch.arange(m, device=x.device)[~small]
+    shortest_period = float(pbox.period[:, pbox.mask].double().min())
     done_dist2, done_index, done_rows = [], [], []
     for _ in range(MARGIN_ROUNDS):
         if rows.numel() == 0:
@@ -358,19 +359,29 @@ def knn(points, k, queries, batch, query_batch, exclude_self, pbox: PeriodicBox)
         sub_batch = None if query_batch is None else query_batch[rows]
         found = _plain_knn(padded.points, k + extra, q[rows], batch=padded.batch, query_batch=sub_batch)
         d2, idx = found.dist2, found.idx
-        if exclude_self:  # the query's own row of the padded cloud, wherever it sorts among ties
+        if exclude_self:  # drop the query's own row of the padded cloud, wherever it sorts among ties
             itself = idx == padded.position[rows].unsqueeze(1)
-            d2 = torch.where(itself, torch.full_like(d2, math.inf), d2)
-            idx = torch.where(itself, torch.full_like(idx, -1), idx)
+            at = torch.where(itself.any(1), itself.to(torch.int8).argmax(1), k)
+            step = torch.arange(k, device=x.device)
+            keep = step + (step >= at.unsqueeze(1)).to(step.dtype)
+            d2, idx = d2.gather(1, keep), idx.gather(1, keep)
         source = torch.where(idx >= 0, padded.source[idx.clamp_min(0)], idx)
-        d2, source = _sort_rows(d2, source)
-        d2, source = d2[:, :k], source[:, :k]
+        # rows come sorted by distance; ties by padded row, which an image breaks: those rows again by index
+        tied = ((d2[:, 1:] == d2[:, :-1]) & (source[:, 1:] >= 0)).any(1)
+        if bool(tied.any()):
+            which = tied.nonzero().squeeze(1)
+            tied_d2, tied_source = _sort_rows(d2[which], source[which])
+            d2, source = d2.index_put((which,), tied_d2), source.index_put((which,), tied_source)
         # exact: the k-th distance within the margin, and no point twice
         reach = (margin[sub_batch] if sub_batch is not None else margin[0].expand(rows.numel())).double()
         last = d2[:, -1].detach().double()
         inside = torch.sqrt(last) <= reach + gap[rows]
-        unique = torch.sort(source, dim=1).values
-        twice = ((unique[:, 1:] == unique[:, :-1]) & (unique[:, 1:] >= 0)).any(1)
+        # two images of a point in one row lie a period apart: only where the k-th distance reaches half a period
+        if bool((4 * last[torch.isfinite(last)] >= shortest_period ** 2).any()):
+            unique = torch.sort(source, dim=1).values
+            twice = ((unique[:, 1:] == unique[:, :-1]) & (unique[:, 1:] >= 0)).any(1)
+        else:
+            twice = torch.zeros_like(inside)
         ok = inside & ~twice
         done_dist2.append(d2[ok]), done_index.append(source[ok]), done_rows.append(rows[ok])
         brute.append(rows[twice])
