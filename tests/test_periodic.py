@@ -57,7 +57,8 @@ def test_batch_checks_and_one_box_for_every_cloud(gen):
         torchvor.radius(points, 0.1, batch=batch.int(), box=BOX, periodic=True)
 
 
-def test_float32_is_computed_in_float64(device, gen):
+def test_float32_in_a_box_about_zero_is_computed_in_float64(device, gen):
+    """SKEWED's images of points near hi round in float32: the call runs in float64."""
     points = cloud(300, gen, SKEWED, torch.float32, device)
     single = torchvor.voronoi(points, SKEWED, periodic=True)
     double = torchvor.voronoi(points.double(), SKEWED, periodic=True)
@@ -194,6 +195,25 @@ def test_cells_of_tiny_clouds(device):
     cells = torchvor.voronoi(two, SKEWED if False else BOX, periodic=True)
     assert cells.volume.sum().item() == pytest.approx(1.0, rel=1e-12)
     check_cells(two, BOX, ALL, cells, [0, 1], 1e-9)
+
+
+@pytest.mark.parametrize("periodic", [ALL, (False, True, False), (True, False, True)], ids=["xyz", "y", "xz"])
+def test_tiny_clouds_with_points_on_the_faces(device, gen, periodic):
+    """1 to 5 points, some coordinates exactly lo or hi (hi wraps to lo), a
+    margin of a whole period: every cell against the oracle over the images,
+    volumes summing to the box."""
+    for n in range(1, 6):
+        for _ in range(3):
+            points = cloud(n, gen, SKEWED)
+            lo, hi = (torch.tensor(b, dtype=torch.float64) for b in SKEWED)
+            snap = torch.rand(n, 3, generator=gen) < 0.4
+            ends = torch.where(torch.rand(n, 3, generator=gen) < 0.5, lo, hi)
+            points = torch.where(snap, ends, points)
+            points = torch.unique(points, dim=0).to(device)  # no exact copies
+            cells = torchvor.voronoi(points, SKEWED, periodic=periodic)
+            volume = float((hi - lo).prod())
+            assert cells.volume.sum().item() == pytest.approx(volume, rel=1e-9), points
+            check_cells(points, SKEWED, periodic, cells, range(points.shape[0]), 1e-9)
 
 
 def test_lattice_cells_are_exact(device, dtype):

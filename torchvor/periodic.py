@@ -14,11 +14,13 @@ belongs to the original points, mapped back to them:
   computed again with a wider one, up to the images of every point.
 
 Points are first wrapped into [lo, hi) along the periodic axes (a point
-outside the box along one is its image inside). Float32 points are computed
-in float64 and the outputs rounded to float32: an image ``x + (hi - lo)``
-rounded to float32 would move by a rounding of the box's coordinates, which is
-large beside the cells of tight clusters. Gradients flow through the images
-to the points.
+outside the box along one is its image inside). The cells' images lie below
+lo alone (pad's one_sided), where they are exact for a box [0, L]: float32
+cells are computed in float32 where every image is exact, else in float64
+with the outputs rounded to float32 (a rounded image would move by a
+rounding of the box's coordinates, which is large beside the cells of tight
+clusters); the searches compute float32 in float64. Gradients flow through
+the images to the points.
 """
 from __future__ import annotations
 
@@ -188,7 +190,7 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
             near = ((hi - points) <= d) & periodic
             deep = bool((depth > pbox.period).any())
             steps = [range(-2 if deep else -1, 1) if a else range(1) for a in pbox.axes]
-            own_shift = torch.where(periodic & ((hi - points) < m), -1, 0)
+            own_shift = torch.where(periodic & ((hi - points) <= m), -1, 0)  # all of them where m is a period
         else:
             # points with an image within the margin: near a periodic face (all of them where it is a period)
             near = (((points - lo) < m) | ((hi - points) < m) | (m >= period)) & periodic
