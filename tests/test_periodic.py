@@ -452,3 +452,22 @@ def test_float32_runs_in_float32_where_every_image_is_exact(device, gen, monkeyp
         ulp = 2.0 ** -23 * double.centroid.abs().amax(1)  # the float32 output's rounding
         assert bool(((single.centroid.double() - double.centroid).norm(dim=1) <= 1e-4 * size + 2 * ulp).all())
         assert abs(float(double.volume.sum()) - 1.0) <= 1e-9
+
+
+def test_images_that_would_round_are_detected(device):
+    """x - 1 is exact for x in [0.5, 1) but rounds for an x below 0.5 with its
+    last bit set: the one-sided padding is then not used (float64 cells of a
+    pair 1 ulp apart, split wrongly at its rounded images: fuzz seed 5 case 22)."""
+    from torchvor import periodic as periodic_module
+
+    fine = 0.25 + 2.0 ** -54  # in [0.25, 0.5): its image below 0 rounds
+    for value, exact in ((0.75, True), (fine, False)):
+        x = torch.tensor([[value, 0.5, 0.5]], dtype=torch.float64, device=device)
+        pbox = periodic_module.periodic_box(x, BOX, None, ALL, "voronoi")
+        margin = torch.ones(1, dtype=torch.float64, device=device)
+        padded = periodic_module.pad(x, pbox, None, margin, one_sided=True)
+        assert periodic_module.images_exact(x, x, padded, pbox, None) == exact
+    pair = torch.tensor([[fine, 0.3, 0.4], [fine + 2.0 ** -54, 0.3 + 2.0 ** -54, 0.4], [0.7, 0.8, 0.9]],
+                        dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(pair, BOX, periodic=(True, False, True))
+    check_cells(pair, BOX, (True, False, True), cells, range(3), 1e-9)

@@ -26,13 +26,12 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import NamedTuple, Optional, Sequence, Tuple, Union
+from typing import NamedTuple, Optional, Tuple
 
 import torch
 
-from .ops import KNN, VoronoiCells, as_box, knn as _plain_knn
+from .ops import KNN, PeriodicLike, VoronoiCells, as_box, knn as _plain_knn
 
-PeriodicLike = Union[bool, Sequence[bool], None]
 
 # A cell is certified when 2 radius (1 + CERTIFY_SLACK) is within the margin:
 # the radius is that of the computed vertices, which an ill-conditioned vertex
@@ -242,23 +241,38 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
     return Padded(padded, source, shift, padded_batch, position, widened)
 
 
+def _rounding_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """What a + b loses to rounding in their dtype (Knuth's TwoSum: exact,
+    whatever their magnitudes, short of overflow)."""
+    total = a + b
+    b_part = total - a
+    return (a - (total - b_part)) + (b - b_part)
+
+
 def images_exact(given: torch.Tensor, x: torch.Tensor, padded: Padded, pbox: PeriodicBox,
                  batch: Optional[torch.Tensor]) -> bool:
-    """Whether the wrapped points `x` and every image of `padded` are the given
-    points moved by exactly whole periods: the box's true periods, the
-    differences of its corners taken in float64 (exact for float32)."""
+    """Whether the wrapped points `x` (and `padded`'s images of them, each
+    ``x + shift * period`` in x's dtype) are the `given` points moved by
+    exactly whole periods, and the periods (in x's dtype) exactly the box's
+    corners' differences."""
     with torch.no_grad():
         n = x.shape[0]
-        box = pbox.box.double()
-        true_period = _per_point(torch.where(pbox.mask, box[:, 1] - box[:, 0], torch.zeros_like(box[:, 0])), batch, n)
-        safe = torch.where(true_period > 0, true_period, torch.ones_like(true_period))
-        moved = given.detach().double() - x.detach().double()
-        if not bool((moved == torch.round(moved / safe) * true_period).all()):
+        box = pbox.box.to(x.dtype)
+        if bool((_rounding_error(box[:, 1], -box[:, 0])[:, pbox.mask] != 0).any()):
             return False
+        period = _per_point(torch.where(pbox.mask, box[:, 1] - box[:, 0], torch.zeros_like(box[:, 0])), batch, n)
+        given = given.detach().to(x.dtype)
+        if not torch.equal(given, x.detach()):
+            # x = given - turns * period where given lay outside: each subtraction exact
+            safe = torch.where(period > 0, period, torch.ones_like(period))
+            turns = torch.round((given - x.detach()) / safe)
+            moved = turns * period
+            if bool(((given - moved) != x.detach()).any()) or bool((_rounding_error(given, -moved) != 0).any()):
+                return False
         image = padded.shift.any(1)
         src = padded.source[image]
-        expected = x.detach()[src].double() + padded.shift[image].double() * true_period[src]
-        return bool((padded.points[image].detach().double() == expected).all())
+        step = padded.shift[image].to(x.dtype) * period[src]
+        return bool((_rounding_error(x.detach()[src], step) == 0).all())
 
 
 def axis_margins(pbox: PeriodicBox, margin: torch.Tensor) -> torch.Tensor:
@@ -530,10 +544,14 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
     n = x.shape[0]
     full = _full_reach(pbox)
     margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS), full)
+    one_sided = True  # until an image would round: then both sides, the points' cells in place
     for round_ in range(MARGIN_ROUNDS + 1):
-        padded = pad(x, pbox, batch, margin, one_sided=True)
-        if exact_only and not images_exact(points, x, padded, given_box, batch):
-            raise _InexactImages()
+        padded = pad(x, pbox, batch, margin, one_sided=one_sided)
+        if one_sided and not images_exact(points, x, padded, given_box, batch):
+            if exact_only:
+                raise _InexactImages()
+            one_sided = False
+            padded = pad(x, pbox, batch, margin)
         if graph:
             result = _plain_graph(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                   memory_budget=memory_budget)
@@ -550,15 +568,17 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
             for again in range(MARGIN_ROUNDS):
                 if not bool(short.any()) or not _few_pairs(x, own, short, pbox, batch):
                     break  # none left, or so many that the whole cloud runs again (below)
-                margin = _wider(margin, own, short, x, pbox, batch, full, last=again == MARGIN_ROUNDS - 1)
-                own, within, seed = _recompute(points if exact_only else None, given_box, x, pbox, batch, own,
-                                               within, seed, short, margin, k, memory_budget)
+                margin = _wider(margin, own, short, x, pbox, batch, full, one_sided,
+                                last=again == MARGIN_ROUNDS - 1)
+                own, within, seed, one_sided = _recompute(points if exact_only else None, given_box, x, pbox, batch,
+                                                          own, within, seed, short, margin, k, memory_budget,
+                                                          one_sided)
                 short = _reaching_past(own, within)
         if not bool(short.any()):
             break
         if bool((margin >= full).all()):
             raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
-        margin = _wider(margin, own, short, x, pbox, batch, full, last=round_ == MARGIN_ROUNDS - 1)
+        margin = _wider(margin, own, short, x, pbox, batch, full, one_sided, last=round_ == MARGIN_ROUNDS - 1)
     with torch.no_grad():
         wrap_offset = given.double() - x.double()
         offset = given.double() - seed.double()
@@ -604,13 +624,13 @@ def _few_pairs(x, own, short, pbox: PeriodicBox, batch) -> bool:
     return int(short.sum()) * density * 27 * min(r, float(pbox.period.max())) ** 3 <= RECOMPUTE_PAIRS
 
 
-def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, last: bool):
+def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, one_sided: bool, last: bool):
     """The margin the cells `short` ask for (a quarter more), at least a
-    quarter more than before, at most `full` (the last round: `full`).
-    With one-sided padding a point at distances b above lo and a below hi
-    along an axis is certified, for a reach c, by a margin of (c - b) / 2
-    (its cell in place, where a >= c), or of (c + a) / 2 and more than a
-    (its cell at its image below lo)."""
+    quarter more than before, at most `full` (the last round: `full`). For a
+    reach c, a point at distances b above lo and a below hi along an axis
+    asks for c - min(a, b) with images on both sides; with one-sided
+    padding, for (c - b) / 2 (its cell in place, where a >= c), or for
+    (c + a) / 2 and at least a (its cell at its image below lo)."""
     if last:
         return full
     u = short.nonzero().squeeze(1)
@@ -620,30 +640,36 @@ def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, last: bool):
     p = x[u].detach().double()
     below, above = p - lo, hi - p
     c = (2 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).unsqueeze(1)
-    in_place = torch.where(above >= c, ((c - below) / 2).clamp_min(0), torch.full_like(above, math.inf))
-    at_image = torch.maximum((c + above) / 2, above * (1 + 1e-6))
-    per_axis = torch.where(pbox.mask, torch.minimum(in_place, at_image),
-                           torch.zeros_like(above))
-    need = per_axis.amax(1) * 1.25
+    if one_sided:
+        in_place = torch.where(above >= c, ((c - below) / 2).clamp_min(0), torch.full_like(above, math.inf))
+        at_image = torch.maximum((c + above) / 2, above)
+        ask = torch.minimum(in_place, at_image)
+    else:
+        ask = (c - torch.minimum(below, above)).clamp_min(0)
+    need = torch.where(pbox.mask, ask, torch.zeros_like(above)).amax(1) * 1.25
     wanted = torch.zeros_like(margin).scatter_reduce(
         0, sub_batch if sub_batch is not None else torch.zeros_like(u), need.to(margin.dtype), "amax")
     return torch.minimum(torch.maximum(1.25 * margin, wanted), full)
 
 
-def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, margin, k, memory_budget):
+def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, margin, k, memory_budget, one_sided):
     """The cells `short` computed again among the points of the cloud padded
     by `margin` that lie within a quarter more than their reach: their rows
     of `own` replaced, `within` with the distance to the nearest point left
     out (the padding's edge, or that reach), and `seed` with where they were
-    computed. `points`: the given float32
-    points whose images must be exact (images_exact), or None."""
+    computed; and whether the padding stayed one-sided (it turns two-sided
+    where an image would round). `points`: the given float32 points whose
+    images must be exact (images_exact), or None."""
     from .ops import voronoi as _plain_voronoi
     from .radius import radius as _plain_radius
 
     u = short.nonzero().squeeze(1)
-    wider = pad(x, pbox, batch, margin, one_sided=True)
-    if points is not None and not images_exact(points, x, wider, given_box, batch):
-        raise _InexactImages()
+    wider = pad(x, pbox, batch, margin, one_sided=one_sided)
+    if one_sided and not images_exact(points if points is not None else x, x, wider, given_box, batch):
+        if points is not None:
+            raise _InexactImages()
+        one_sided = False
+        wider = pad(x, pbox, batch, margin)
     r = float((2.5 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).max())
     seeds = wider.position[u]
     found = _plain_radius(wider.points.detach(), r, wider.points[seeds].detach(), batch=wider.batch,
@@ -654,7 +680,7 @@ def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, marg
     rows = torch.searchsorted(keep, seeds)
     own = VoronoiCells(*(t.index_copy(0, u, s[rows]) for t, s in zip(own, sub)))
     reach = torch.minimum(clearance(wider, pbox, batch, margin)[u], torch.full_like(within[u], r))
-    return own, within.index_copy(0, u, reach), seed.index_copy(0, u, wider.points.detach()[seeds])
+    return own, within.index_copy(0, u, reach), seed.index_copy(0, u, wider.points.detach()[seeds]), one_sided
 
 
 def voronoi(points, pbox, batch, k, memory_budget) -> VoronoiCells:
