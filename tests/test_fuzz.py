@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 import torchvor
@@ -69,12 +70,13 @@ REGRESSIONS = [
 ]
 
 
-def test_fuzz_regressions(device):
-    """Every cell of the cases in REGRESSIONS computed and right, under both
-    cell implementations."""
-    for seed, index, max_n, dtype, what in REGRESSIONS:
-        report = fuzz.run_campaign(seed, [index], device=device.type, max_n=max_n, dtype=dtype, cells="all")
-        assert report.ok(), f"{what}\n{fuzz.summary(report)}"
+@pytest.mark.parametrize("fuzz_seed, index, max_n, case_dtype, what", REGRESSIONS,
+                         ids=[f"seed{seed}-case{index}" for seed, index, *_ in REGRESSIONS])
+def test_fuzz_regressions(device, fuzz_seed, index, max_n, case_dtype, what):
+    """Every cell of a case in REGRESSIONS computed and right, under both
+    cell implementations (one test a case: shards of the suite share them)."""
+    report = fuzz.run_campaign(fuzz_seed, [index], device=device.type, max_n=max_n, dtype=case_dtype, cells="all")
+    assert report.ok(), f"{what}\n{fuzz.summary(report)}"
 
 
 def test_cases_replay_alone():
