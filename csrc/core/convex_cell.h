@@ -201,6 +201,22 @@ TV_HD bool rounding_could_cut(T value, T band2) {
   return scaled * scaled < band2;
 }
 
+// A new vertex lies on an edge of the cell it cuts, so within that cell's
+// radius. One beyond it (by more than rounding: a thousandth) was put on a
+// line where two planes meet only at a point of the cell: a vertex where
+// four or more planes meet (cospherical points), whose triangles' rounded
+// copies fell on both sides of the plane. The cell is then recomputed wider
+// (kIllConditioned); left, the vertex stays outside the exact cell as a
+// spike of no volume that a later plane may never reach.
+// (Not for double-double cells: their exact predicates are never inconsistent.)
+template <typename T>
+TV_HD bool beyond_the_cell(T vertex_radius2, T cell_radius2) {
+  if constexpr (std::is_same<T, float>::value || std::is_same<T, double>::value) {
+    return vertex_radius2 > cell_radius2 * T(1.001);
+  }
+  return false;
+}
+
 // ---- The first cell: a tetrahedron of four bisectors, or the box ----------
 //
 // Starting from the box, the first neighbours carve away its 8 corners and
@@ -848,16 +864,19 @@ struct ConvexCell {
     Id from = start;
     Plane<T> from_plane = plane(from);
     T largest = kept_radius2;
+    bool misplaced = false;  // a new vertex beyond the cell it cuts (beyond_the_cell)
     for (int e = 0; e < boundary_length; ++e) {
       const Id to = next[from];
       const Plane<T> to_plane = plane(to);
       const int slot = e < removed ? holes.next() : num_triangles++;
       const T v2 = set_triangle(slot, from, to, static_cast<Id>(new_plane), from_plane, to_plane, p).radius2;
       if (!is_finite_value(v2)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
+      misplaced = misplaced || beyond_the_cell(v2, radius2);
       largest = max_of(largest, v2);
       from = to;
       from_plane = to_plane;
     }
+    if (misplaced) return fail(kIllConditioned);
     if (boundary_length < removed) fill_holes(holes, removed - boundary_length, clipped);
     radius2 = largest;
     return true;

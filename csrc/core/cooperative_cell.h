@@ -176,16 +176,19 @@ struct CooperativeCell {
     // the new ones'.
     T largest = kept_radius2;
     bool finite = true;
+    bool placed = true;  // no new vertex beyond the cell it cuts (beyond_the_cell)
     for (int e = lane; e < boundary; e += kLanes) {
       const uint32_t edge = a.edge[e];
       const int slot = e < removed ? int(a.hole[e]) : num_triangles + (e - removed);
       const T v2 = set_triangle(slot, pack(edge & 0xffu, edge >> 8, uint32_t(new_plane)), p).radius2;
       finite = finite && is_finite_value(v2);
+      placed = placed && !beyond_the_cell(v2, radius2);
       largest = max_of(largest, v2);
     }
     if (boundary < removed) fill_holes(clipped, boundary, new_count);
     lanes.sync();
     if (!lanes.all(finite)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
+    if (!lanes.all(placed)) return fail(kIllConditioned);
     radius2 = lanes.max(largest);
     num_triangles = new_count;
     return true;
