@@ -136,6 +136,8 @@ def wrap(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor])
     period = _per_point(pbox.period, batch, n)
     with torch.no_grad():
         periodic = period > 0
+        if bool((((points >= lo) & (points < lo + period)) | ~periodic).all()):
+            return points  # inside already (the usual case): the same tensor
         safe = torch.where(periodic, period, torch.ones_like(period))
         turns = torch.where(periodic, torch.floor((points - lo) / safe), torch.zeros_like(points))
         moved = points - turns * period
@@ -261,8 +263,9 @@ def images_exact(given: torch.Tensor, x: torch.Tensor, padded: Padded, pbox: Per
         if bool((_rounding_error(box[:, 1], -box[:, 0])[:, pbox.mask] != 0).any()):
             return False
         period = _per_point(torch.where(pbox.mask, box[:, 1] - box[:, 0], torch.zeros_like(box[:, 0])), batch, n)
+        unmoved = given is x  # wrap returns the points themselves where they lie inside
         given = given.detach().to(x.dtype)
-        if not torch.equal(given, x.detach()):
+        if not unmoved and not torch.equal(given, x.detach()):
             # x = given - turns * period where given lay outside: each subtraction exact
             safe = torch.where(period > 0, period, torch.ones_like(period))
             turns = torch.round((given - x.detach()) / safe)
