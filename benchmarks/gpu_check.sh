@@ -135,6 +135,7 @@ torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(
       'edges', g.edge_index.shape[1], 'grad', q.grad.abs().sum().item())
 " > "$OUT/sanitize_run.log" 2>&1; code=$?
           tail -5 "$OUT/sanitize_run.log" | tee -a "$OUT/sanitize.log"; [ $code = 0 ] || status=1
+          grep -m 12 -A 6 -E "^========= +(Error|Warning)" "$OUT/sanitize_run.log" >> "$OUT/sanitize_raw.log"
         done
       done
       # and a slice of the fuzzing campaign (SANITIZE_FUZZ_CASES cases of up to SANITIZE_FUZZ_MAX_N
@@ -147,6 +148,8 @@ torch.cuda.synchronize(); print('$tool run ok, volume sum', c.volume.sum().item(
         # each hazard's kind and where (kernel, line), counted, and the summary
         grep -E "^========= +(Error|Warning|Race reported|Saved host backtrace| +at )|SUMMARY" "$OUT/sanitize_run.log" \
           | sed -E 's/0x[0-9a-f]+/0x./g' | sort | uniq -c | sort -rn | head -40 | tee -a "$OUT/sanitize.log"
+        # the first hazards in full (kernel, source line, both accesses), for attribution
+        grep -m 12 -A 6 -E "^========= +(Error|Warning)" "$OUT/sanitize_run.log" >> "$OUT/sanitize_raw.log"
         [ $code = 0 ] || status=1
       done
       rm -f "$OUT/sanitize_run.log" ;;
