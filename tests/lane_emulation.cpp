@@ -75,6 +75,7 @@ struct EmulatedLanes {
   bool any(bool predicate) const { return ballot(predicate) != 0u; }
   void sync() const { board->wait(); }
   void set_shared_bits(uint32_t* word, uint32_t bits) const { __atomic_fetch_or(word, bits, __ATOMIC_SEQ_CST); }
+  void store_shared(uint32_t* word, uint32_t value) const { __atomic_store_n(word, value, __ATOMIC_SEQ_CST); }
   template <typename T>
   T sum(T value) const {
     return fold(value, [](double a, double b) { return a + b; });  // every lane adds in the same order

@@ -331,8 +331,10 @@ struct CooperativeCell {
         if (!on_boundary[e]) continue;
         const uint32_t from = corner(corners, e), to = corner(corners, (e + 1) % 3);
         if (index < MAX_PLANES) a.edge[index] = static_cast<uint16_t>(from | to << 8);
-        a.link[from] = to | stamp << 8;
-        a.back_link[to] = from | stamp << 8;
+        // Two edges from one plane (or to one) store to the same link, and
+        // one store lands: the check below finds the other edge's missing.
+        lanes.store_shared(&a.link[from], to | stamp << 8);
+        lanes.store_shared(&a.back_link[to], from | stamp << 8);
         ++index;
       }
       boundary += bit_count(words[0]) + bit_count(words[1]) + bit_count(words[2]);

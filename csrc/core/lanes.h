@@ -20,6 +20,7 @@ struct SingleLane {
   TV_HD bool any(bool predicate) const { return predicate; }
   TV_HD void sync() const {}
   TV_HD void set_shared_bits(uint32_t* word, uint32_t bits) const { *word |= bits; }
+  TV_HD void store_shared(uint32_t* word, uint32_t value) const { *word = value; }
   template <typename T>
   TV_HD T sum(T value) const { return value; }
   template <typename T>
@@ -73,6 +74,15 @@ struct WarpLanes {
     atomicOr(word, bits);
 #else
     *word |= bits;
+#endif
+  }
+  // *word = value from any number of lanes at once (shared memory): one
+  // store lands whole; the lanes may then check whose did.
+  TV_HD void store_shared(uint32_t* word, uint32_t value) const {
+#if defined(__CUDA_ARCH__)
+    atomicExch(word, value);
+#else
+    *word = value;
 #endif
   }
   // Orders the lanes' shared-memory writes before the reads that follow.
