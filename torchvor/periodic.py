@@ -92,11 +92,12 @@ def periodic_box(points: torch.Tensor, box, batch: Optional[torch.Tensor], axes,
     elif box_tensor.shape[0] < clouds:
         raise ValueError(f"torchvor.{caller}: batch refers to {clouds} point clouds but box holds "
                          f"{box_tensor.shape[0]}")
-    if not bool(torch.isfinite(box_tensor).all()):
-        raise ValueError(f"torchvor.{caller}: box contains NaN or Inf")
     mask = torch.tensor(axes, device=box_tensor.device)
     edges = box_tensor[:, 1] - box_tensor[:, 0]
-    if bool((edges[:, mask] <= 0).any()):
+    finite, positive = torch.stack([torch.isfinite(box_tensor).all(), (edges[:, mask] > 0).all()]).tolist()
+    if not finite:
+        raise ValueError(f"torchvor.{caller}: box contains NaN or Inf")
+    if not positive:
         raise ValueError(f"torchvor.{caller}: the box is flat along a periodic axis (hi <= lo): "
                          f"a period must be positive, got box {box_tensor.tolist()}")
     period = torch.where(mask, edges, torch.zeros_like(edges))
@@ -156,11 +157,13 @@ class Padded(NamedTuple):
     """A cloud and the images of its points near the periodic faces."""
 
     points: torch.Tensor             # (P, 3): the points and their images, by batch element
-    source: torch.Tensor             # (P,) int64: the point each row is (an image of)
-    shift: torch.Tensor              # (P, 3) int64: the image's shift in periods
+    source: torch.Tensor             # (P,) int64: the point each row is an image of
+    shift: torch.Tensor              # (P, 3) int8: the image's shift in periods
     batch: Optional[torch.Tensor]    # (P,) sorted, or None
     position: torch.Tensor           # (N,) int64: the row of each point itself
     box: torch.Tensor                # (B, 2, 3): the box widened by the margin on the periodic axes
+    moved: torch.Tensor              # (M,) int64: the points whose own row is an image (one_sided)
+    exact: torch.Tensor              # () bool: every image is its point plus shift * period without rounding
 
 
 def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor,
@@ -171,58 +174,60 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
 
     one_sided: every image below lo instead, to a depth of twice the margin,
     and a point within the margin of hi has its own cell at its image below
-    lo (`position`). Every cell then keeps the same clearance as with images
-    on both sides, and an image is ``x - k (hi - lo)`` for x near hi: exact
-    in floating point where x and the period share their binade's spacing
-    (a box [0, L], say), where ``x + (hi - lo)`` for x near lo rounds away
-    the fine digits of points near 0."""
+    lo (`position`, `moved`). Every cell then keeps the same clearance as with
+    images on both sides, and an image is ``x - k (hi - lo)`` for x near hi:
+    exact in floating point where x and the period share their binade's
+    spacing (a box [0, L], say), where ``x + (hi - lo)`` for x near lo rounds
+    away the fine digits of points near 0."""
     n, device = points.shape[0], points.device
-    lo = _per_point(pbox.box[:, 0], batch, n)
-    hi = _per_point(pbox.box[:, 1], batch, n)
-    period = _per_point(pbox.period, batch, n)
     margins = axis_margins(pbox, margin)
     depth = 2 * margins if one_sided else margins
-    m = _per_point(margins, batch, n)
-    d = _per_point(depth, batch, n)
     periodic = pbox.mask
     with torch.no_grad():
+        lo = _per_point(pbox.box[:, 0], batch, n)
+        hi = _per_point(pbox.box[:, 1], batch, n)
+        d = _per_point(depth, batch, n)
         if one_sided:
             # below lo, down to lo - d: images of the points within d of hi, two periods deep at most
             near = ((hi - points) <= d) & periodic
             deep = bool((depth > pbox.period).any())
             steps = [range(-2 if deep else -1, 1) if a else range(1) for a in pbox.axes]
-            own_shift = torch.where(periodic & ((hi - points) <= m), -1, 0)  # all of them where m is a period
         else:
             # points with an image within the margin: near a periodic face (all of them where it is a period)
-            near = (((points - lo) < m) | ((hi - points) < m) | (m >= period)) & periodic
+            m = _per_point(margins, batch, n)
+            near = (((points - lo) < m) | ((hi - points) < m) | (m >= _per_point(pbox.period, batch, n))) & periodic
             steps = [range(-1, 2) if a else range(1) for a in pbox.axes]
-            own_shift = torch.zeros_like(points, dtype=torch.int64)
         candidates = near.any(1).nonzero().squeeze(1)
-        sources, shifts = [], []
+        shifts = torch.tensor([s for s in itertools.product(*steps) if any(s)], dtype=torch.int64,
+                              device=device).reshape(-1, 3)
+        sub_batch = batch[candidates] if batch is not None else None
+        c = candidates.numel()
+        p = points.detach()[candidates].unsqueeze(1)                       # (C, 1, 3)
+        per = _per_point(pbox.period, sub_batch, c).unsqueeze(1)           # (C, 1, 3)
+        low = _per_point(pbox.box[:, 0], sub_batch, c).unsqueeze(1)
+        high = _per_point(pbox.box[:, 1], sub_batch, c).unsqueeze(1)
+        dd = _per_point(depth, sub_batch, c).unsqueeze(1)
+        step = shifts.to(points.dtype) * per                               # (C, S, 3)
+        image = p + step
+        keep = (image >= low - dd) & (image <= high + (0 if one_sided else dd))
+        if one_sided:
+            keep &= image < high
+        keep = (keep | ~periodic).all(2)
+        # shift-major, as the images are laid out: every image of one shift, then the next
+        which, row = keep.t().nonzero().unbind(1)
+        source = torch.cat([torch.arange(n, device=device), candidates[row]])
+        shift = torch.zeros(n + row.numel(), 3, dtype=torch.int8, device=device)
+        shift[n:] = shifts[which].to(torch.int8)
+        exact = (_rounding_error(p.squeeze(1)[row], step[row, which]) == 0).all()
         position = torch.arange(n, device=device)
-        rows = n
-        if candidates.numel():
-            p, low, high, per, dd = (t[candidates] for t in (points, lo, hi, period, d))
-            own = own_shift[candidates]
-            for shift in itertools.product(*steps):
-                if not any(shift):
-                    continue
-                s = torch.tensor(shift, device=device)
-                image = p + s.to(points.dtype) * per
-                keep = ((image >= low - dd) & (image <= high + (0 if one_sided else dd))) | ~periodic
-                if one_sided:
-                    keep &= (image < high) | ~periodic
-                keep = keep.all(1)
-                kept = candidates[keep]
-                if one_sided:  # the points whose own cell is this image
-                    mine = (own[keep] == s).all(1)
-                    position[kept[mine]] = rows + mine.nonzero().squeeze(1)
-                sources.append(kept)
-                shifts.append(s.expand(kept.numel(), 3))
-                rows += kept.numel()
-        source = torch.cat([torch.arange(n, device=device), *sources])
-        shift = torch.cat([torch.zeros(n, 3, dtype=torch.int64, device=device), *shifts])
-    images = points[source[n:]] + shift[n:].to(points.dtype) * period[source[n:]]
+        moved = position[:0]
+        if one_sided:  # the points within the margin of hi: their own cell is their image at shift -1 there
+            m = _per_point(margins, sub_batch, c)
+            own_shift = torch.where(periodic & ((high.squeeze(1) - p.squeeze(1)) <= m), -1, 0)
+            mine = (shifts[which] == own_shift[row]).all(1).nonzero().squeeze(1)
+            moved = candidates[row[mine]]
+            position[moved] = n + mine
+    images = points[source[n:]] + shift[n:].to(points.dtype) * _per_point(pbox.period, batch, n)[source[n:]]
     padded = torch.cat([points, images])
     padded_batch = None
     if batch is not None:
@@ -240,7 +245,7 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
     widened[:, 0] -= grow
     if not one_sided:
         widened[:, 1] += grow
-    return Padded(padded, source, shift, padded_batch, position, widened)
+    return Padded(padded, source, shift, padded_batch, position, widened, moved, exact)
 
 
 def _rounding_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -260,22 +265,15 @@ def images_exact(given: torch.Tensor, x: torch.Tensor, padded: Padded, pbox: Per
     with torch.no_grad():
         n = x.shape[0]
         box = pbox.box.to(x.dtype)
-        if bool((_rounding_error(box[:, 1], -box[:, 0])[:, pbox.mask] != 0).any()):
-            return False
-        period = _per_point(torch.where(pbox.mask, box[:, 1] - box[:, 0], torch.zeros_like(box[:, 0])), batch, n)
-        unmoved = given is x  # wrap returns the points themselves where they lie inside
-        given = given.detach().to(x.dtype)
-        if not unmoved and not torch.equal(given, x.detach()):
+        exact = padded.exact & (_rounding_error(box[:, 1], -box[:, 0])[:, pbox.mask] == 0).all()
+        if given is not x:  # wrap returns the points themselves where they lie inside
             # x = given - turns * period where given lay outside: each subtraction exact
+            period = _per_point(torch.where(pbox.mask, box[:, 1] - box[:, 0], torch.zeros_like(box[:, 0])), batch, n)
+            given = given.detach().to(x.dtype)
             safe = torch.where(period > 0, period, torch.ones_like(period))
-            turns = torch.round((given - x.detach()) / safe)
-            moved = turns * period
-            if bool(((given - moved) != x.detach()).any()) or bool((_rounding_error(given, -moved) != 0).any()):
-                return False
-        image = padded.shift.any(1)
-        src = padded.source[image]
-        step = padded.shift[image].to(x.dtype) * period[src]
-        return bool((_rounding_error(x.detach()[src], step) == 0).all())
+            moved = torch.round((given - x.detach()) / safe) * period
+            exact &= ((given - moved) == x.detach()).all() & (_rounding_error(given, -moved) == 0).all()
+        return bool(exact)
 
 
 def axis_margins(pbox: PeriodicBox, margin: torch.Tensor) -> torch.Tensor:
@@ -502,10 +500,20 @@ def _lexsort(keys):
 
 class PeriodicCells(NamedTuple):
     cells: VoronoiCells        # in the work dtype
-    offset: torch.Tensor       # (N, 3) float64: each point minus the seed of its cell in `padded`
-    wrap_offset: torch.Tensor  # (N, 3) float64: each point minus its wrapped position
+    given: torch.Tensor        # (N, 3): the points in the work dtype
+    x: torch.Tensor            # (N, 3): wrapped (`given` itself where every point lies inside)
+    seed: torch.Tensor         # (N, 3): where each point's cell was computed (x, or an image of it)
+    moved: Optional[torch.Tensor]  # (M,) int64 sorted: the points whose seed is not the point (None: any)
     padded: Padded
     graph: Optional[object]    # the padded cloud's VoronoiGraph, where asked
+
+    def offset(self, rows: torch.Tensor) -> torch.Tensor:
+        """(R, 3) float64: each point of `rows` minus the seed of its cell."""
+        return self.given.detach()[rows].double() - self.seed[rows].double()
+
+    def wrap_offset(self, rows: torch.Tensor) -> torch.Tensor:
+        """(R, 3) float64: each point of `rows` minus its wrapped position."""
+        return self.given.detach()[rows].double() - self.x.detach()[rows].double()
 
 
 def _full_reach(pbox: PeriodicBox) -> torch.Tensor:
@@ -565,7 +573,8 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
                                         memory_budget=memory_budget)
         own = VoronoiCells(*(t[padded.position] for t in everything))
         seed = padded.points.detach()[padded.position]  # where each point's cell was computed
-        within = clearance(padded, pbox, batch, margin)
+        moved = [padded.moved]
+        within = clearance(padded, pbox, batch, margin, _reach(own))
         short = _reaching_past(own, within)
         if not graph:  # the few cells that reach past the margin, alone
             for again in range(MARGIN_ROUNDS):
@@ -576,30 +585,52 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
                 own, within, seed, one_sided = _recompute(points if exact_only else None, given_box, x, pbox, batch,
                                                           own, within, seed, short, margin, k, memory_budget,
                                                           one_sided)
+                moved.append(short.nonzero().squeeze(1))
                 short = _reaching_past(own, within)
         if not bool(short.any()):
             break
         if bool((margin >= full).all()):
             raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
         margin = _wider(margin, own, short, x, pbox, batch, full, one_sided, last=round_ == MARGIN_ROUNDS - 1)
-    with torch.no_grad():
-        wrap_offset = given.double() - x.double()
-        offset = given.double() - seed.double()
-    return PeriodicCells(own, offset, wrap_offset, padded, result)
+    moved = torch.unique(torch.cat(moved)) if x is given else None
+    return PeriodicCells(own, given, x, seed, moved, padded, result)
 
 
-def clearance(padded: Padded, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor) -> torch.Tensor:
+def clearance(padded: Padded, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor,
+              reach: Optional[torch.Tensor] = None, rows: Optional[torch.Tensor] = None) -> torch.Tensor:
     """(N,) float64: the distance from each point's own cell seed (its row
     `position`) to the nearest face of the padded box along a periodic axis
     that `margin` pads by less than a period (inf where there is none: no
-    image that could cut a cell is left out)."""
+    image that could cut a cell is left out). Every seed clears the margin
+    (pad); with `reach` (N,), the distance is computed only where the reach
+    passes that, and is the margin elsewhere. With `rows`: (R,) at those
+    points only."""
     n = padded.position.numel()
+    margins = axis_margins(pbox, margin).double()
+    short_axes = pbox.mask & (margins < pbox.period.double())
+    if rows is not None:
+        within = torch.empty(rows.numel(), dtype=torch.float64, device=margin.device)
+        at = torch.arange(rows.numel(), device=margin.device)
+    elif reach is None:
+        rows = at = torch.arange(n, device=margin.device)
+        within = torch.empty(n, dtype=torch.float64, device=margin.device)
+    else:
+        least = torch.where(short_axes, margins, torch.full_like(margins, math.inf)).amin(1)
+        within = _per_point(least, batch, n).clone()
+        rows = at = (~(reach <= within)).nonzero().squeeze(1)
+    sub_batch = batch[rows] if batch is not None else None
     box = padded.box.double()
-    lo, hi = _per_point(box[:, 0], batch, n), _per_point(box[:, 1], batch, n)
-    short = _per_point(pbox.mask & (axis_margins(pbox, margin) < pbox.period), batch, n)
-    p = padded.points.detach()[padded.position].double()
+    lo, hi = _per_point(box[:, 0], sub_batch, rows.numel()), _per_point(box[:, 1], sub_batch, rows.numel())
+    p = padded.points.detach()[padded.position[rows]].double()
     gap = torch.minimum(p - lo, hi - p).clamp_min(0)
-    return torch.where(short, gap, torch.full_like(gap, math.inf)).amin(1)
+    gap = torch.where(_per_point(short_axes, sub_batch, rows.numel()), gap, torch.full_like(gap, math.inf))
+    return within.index_put((at,), gap.amin(1))
+
+
+def _reach(own: VoronoiCells) -> torch.Tensor:
+    """(N,) float64: how far each cell's images must be for none to cut it
+    (twice its radius with CERTIFY_SLACK; NaN where not computed)."""
+    return 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
 
 
 def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
@@ -608,8 +639,7 @@ def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
     from .ops import CellStatus
 
     computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE)
-    reach = 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
-    return computed & ~(reach <= within)
+    return computed & ~(_reach(own) <= within)
 
 
 # _recompute's radius search lists this many (cell, point) pairs at most; past
@@ -682,7 +712,7 @@ def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, marg
                          k=k, on_failure="flag", memory_budget=memory_budget)
     rows = torch.searchsorted(keep, seeds)
     own = VoronoiCells(*(t.index_copy(0, u, s[rows]) for t, s in zip(own, sub)))
-    reach = torch.minimum(clearance(wider, pbox, batch, margin)[u], torch.full_like(within[u], r))
+    reach = torch.minimum(clearance(wider, pbox, batch, margin, rows=u), torch.full_like(within[u], r))
     return own, within.index_copy(0, u, reach), seed.index_copy(0, u, wider.points.detach()[seeds]), one_sided
 
 
@@ -694,9 +724,14 @@ def voronoi(points, pbox, batch, k, memory_budget) -> VoronoiCells:
 
 
 def _caller_cells(found: PeriodicCells, dtype: torch.dtype) -> VoronoiCells:
-    """The cells in the caller's dtype, centroids moved to the given points."""
+    """The cells in the caller's dtype, centroids moved to the given points
+    (by the offset of their seeds, where that is not 0)."""
     c = found.cells
-    centroid = (c.centroid.double() + found.offset).to(dtype)
+    if found.moved is None:
+        centroid = (c.centroid.double() + found.offset(slice(None))).to(dtype)
+    else:
+        rows = found.moved
+        centroid = c.centroid.to(dtype).index_put((rows,), (c.centroid[rows].double() + found.offset(rows)).to(dtype))
     return VoronoiCells(c.volume.to(dtype), centroid, c.second_moment.to(dtype), c.status, c.neighbors_needed,
                         c.radius.to(dtype))
 
@@ -715,8 +750,8 @@ def voronoi_graph(points, pbox, batch, k, memory_budget):
     j_row, i_row = j_row[keep], i_row[keep]
     i, j = padded.source[i_row], padded.source[j_row]
     period = _per_point(pbox.period.double(), batch, n)
-    shift = image_shift(found.wrap_offset[j], found.wrap_offset[i], padded.shift[j_row] - padded.shift[i_row],
-                        period[i])
+    shift = image_shift(found.wrap_offset(j), found.wrap_offset(i),
+                        padded.shift[j_row].long() - padded.shift[i_row].long(), period[i])
     if shift.numel() and int(shift.abs().max()) > 127:
         raise ValueError("torchvor.voronoi_graph: points lie more than 127 periods from the box; "
                          "wrap them into it first (shift is int8)")
@@ -724,7 +759,7 @@ def voronoi_graph(points, pbox, batch, k, memory_budget):
     order = _lexsort([i, j, code])
     i, j, shift, i_row = i[order], j[order], shift[order], i_row[order]
     area = graph.area[keep][order]
-    centroid = graph.centroid[keep][order].double() + found.offset[i]
+    centroid = graph.centroid[keep][order].double() + found.offset(i)
     cells_out = _caller_cells(found, dtype)
     wall_area = graph.wall_area[padded.position].to(dtype)
     return cells_out, torch.stack([j, i]), area.to(dtype), centroid.to(dtype), wall_area, shift.to(torch.int8)
