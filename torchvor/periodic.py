@@ -137,7 +137,9 @@ def wrap(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor])
     period = _per_point(pbox.period, batch, n)
     with torch.no_grad():
         periodic = period > 0
-        if bool((((points >= lo) & (points < lo + period)) | ~periodic).all()):
+        below = _per_point(torch.where(pbox.period > 0, pbox.box[:, 0], -math.inf), batch, n)
+        above = _per_point(torch.where(pbox.period > 0, pbox.box[:, 0] + pbox.period, math.inf), batch, n)
+        if bool(((points >= below) & (points < above)).all()):
             return points  # inside already (the usual case): the same tensor
         safe = torch.where(periodic, period, torch.ones_like(period))
         turns = torch.where(periodic, torch.floor((points - lo) / safe), torch.zeros_like(points))
@@ -571,8 +573,8 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
             result = None
             everything = _plain_voronoi(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                         memory_budget=memory_budget)
-        own = VoronoiCells(*(t[padded.position] for t in everything))
-        seed = padded.points.detach()[padded.position]  # where each point's cell was computed
+        own = VoronoiCells(*(t.index_select(0, padded.position) for t in everything))
+        seed = padded.points.detach().index_select(0, padded.position)  # where each point's cell was computed
         moved = [padded.moved]
         within = clearance(padded, pbox, batch, margin, _reach(own))
         short = _reaching_past(own, within)
