@@ -110,7 +110,8 @@ def test_cooperative_cells_match_thread_cells(monkeypatch, device, dtype, gen, s
         results[impl] = torchvor.voronoi(points, UNIT, k=k)
     thread, coop = results["thread"], results["cooperative"]
     check_global(coop, points, [box_of(points, UNIT)], dtype)
-    assert_same_cells(coop, thread, dtype)
+    # CUDA: the two fuse different products, which can move the radius of security by one neighbour
+    assert_same_cells(coop, thread, dtype, points if device.type == "cuda" else None)
 
 
 @pytest.mark.parametrize("kind", ["white", "clustered", "lattice", "perturbed", "duplicates", "batch", "k6",

@@ -10,9 +10,11 @@ The fixtures ``cells_impl`` and ``vertex_balls`` are in tests/conftest.py.
 """
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
+
 import torch
 
 import torchvor
@@ -40,10 +42,28 @@ def ragged_batch(sizes, device):
     return torch.repeat_interleave(torch.arange(len(sizes)), torch.tensor(sizes)).to(device)
 
 
-def assert_same_cells(cells, expected, dtype):
+def assert_same_cells(cells, expected, dtype, points=None):
     """The same statuses and neighbour counts, and the same integrals up to
-    rounding (relative, or absolute at the scale of the mean cell)."""
-    assert torch.equal(expected.neighbors_needed, cells.neighbors_needed)
+    rounding (relative, or absolute at the scale of the mean cell).
+
+    With `points` (one cloud), a count may differ by one where the neighbour
+    between the two counts lies at twice the cell's radius to within 1e-3
+    relative: computations whose vertices round differently (CUDA's thread
+    and warp cells fuse different products) decide that neighbour either way,
+    and both are right (it cannot cut the cell)."""
+    differ = (expected.neighbors_needed != cells.neighbors_needed).nonzero().squeeze(1).tolist()
+    assert points is not None or not differ, f"neighbour counts differ at cells {differ[:10]}"
+    x = points.detach().double().cpu() if differ else None
+    for i in differ:
+        fewer = int(min(expected.neighbors_needed[i], cells.neighbors_needed[i]))
+        more = int(max(expected.neighbors_needed[i], cells.neighbors_needed[i]))
+        dist2 = ((x - x[i]) ** 2).sum(1)
+        dist2[i] = math.inf  # the seed itself
+        between = float(dist2.sort().values[fewer])  # neighbour `fewer` (0-based): read by one, not the other
+        security2 = 4 * float(max(expected.radius[i], cells.radius[i])) ** 2
+        assert more == fewer + 1 and abs(between / security2 - 1) < 1e-3, (
+            f"cell {i}: {fewer} and {more} neighbours, the one between at {between / security2:.6f} "
+            f"of the radius of security squared")
     assert_same_integrals(cells, expected, dtype)
 
 
