@@ -1,0 +1,163 @@
+"""torchvor.distributed against the single-process calls on the whole cloud:
+2 and 3 CPU processes over gloo, each with its share of the points (random,
+skewed, empty), bit for bit. Each world size is one spawn that runs every
+scenario (a spawn costs seconds of imports)."""
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import socket
+import sys
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+import torchvor
+import torchvor.distributed as tvd
+from torchvor import samples
+
+UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cloud(kind: str, dtype):
+    """(points, batch or None, box): the whole cloud of a scenario (every rank makes the same)."""
+    if kind == "white":
+        return samples.white_noise(3000, seed=5, dtype=dtype), None, UNIT
+    if kind == "clustered":
+        return samples.clustered(3000, seed=6, dtype=dtype), None, None
+    if kind == "batches":
+        a = samples.white_noise(900, seed=7, dtype=dtype)
+        b = samples.clustered(1100, seed=8, dtype=dtype) * 0.5 + 0.25
+        batch = torch.cat([torch.zeros(900, dtype=torch.int64), torch.ones(1100, dtype=torch.int64)])
+        return torch.cat([a, b]), batch, UNIT
+    if kind == "tiny":
+        return samples.white_noise(7, seed=9, dtype=dtype), None, UNIT
+    raise ValueError(kind)
+
+
+def _split(n: int, size: int, how: str):
+    """The cut points of [0, n) into `size` contiguous shares."""
+    if how == "even":
+        return [n * r // size for r in range(size + 1)]
+    if how == "first":  # every point on rank 0
+        return [0] + [n] * size
+    if how == "last_empty":  # the last rank has none
+        return [n * r // (size - 1) for r in range(size)] + [n]
+    raise ValueError(how)
+
+
+SCENARIOS = [("white", "even", torch.float64), ("white", "first", torch.float64),
+             ("clustered", "even", torch.float64), ("clustered", "last_empty", torch.float32),
+             ("batches", "even", torch.float64), ("tiny", "even", torch.float64),
+             ("white", "even", torch.float32)]
+
+
+def _same(name, got, want, problems):
+    """Bit for bit in float64; float32 cells up to rounding (a float32 cell's
+    vertices are rounded to 18 bits in the first tier, and which pass
+    computes a cell depends on the pilot's k, which each rank's share picks)."""
+    for field, a, b in zip(got._fields, got, want):
+        if a.dtype == torch.float32 and not name.endswith("knn"):
+            close = torch.isclose(a.double(), b.double(), rtol=1e-5, atol=1e-7) | (a.isnan() & b.isnan())
+        else:
+            close = a == b
+        if a.shape != b.shape or not bool(close.all()):
+            diff = (~close).nonzero()[:3].tolist() if a.shape == b.shape else f"shape {tuple(a.shape)}"
+            problems.append(f"{name}: {field} differs at {diff}")
+
+
+def _worker(rank: int, size: int, port: int, report: str) -> None:
+    os.environ["MASTER_ADDR"], os.environ["MASTER_PORT"] = "127.0.0.1", str(port)
+    torch.set_num_threads(1)
+    # a collective that waits longer fails (a rank left waiting would hang the suite)
+    dist.init_process_group("gloo", rank=rank, world_size=size, timeout=datetime.timedelta(seconds=120))
+    problems = []
+    rounds = []  # halos a call computed with: some scenario must grow its halo
+    cloud = tvd._Local.cloud
+
+    def counted(self, width):
+        rounds.append(width)
+        return cloud(self, width)
+
+    tvd._Local.cloud = counted
+    try:
+        for kind, how, dtype in SCENARIOS:
+            points, batch, box = _cloud(kind, dtype)
+            # a random (non-spatial) order of the cloud, the same on every rank
+            order = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(11))
+            if batch is not None:  # batches must stay sorted: shuffle within each cloud
+                order = order[torch.sort(batch[order], stable=True).indices]
+            points = points[order]
+            batch = batch[order] if batch is not None else None
+            cuts = _split(points.shape[0], size, how)
+            mine = slice(cuts[rank], cuts[rank + 1])
+            name = f"{kind}/{how}/{dtype}"
+            want = torchvor.voronoi(points, box, batch=batch, on_failure="flag")
+            got = tvd.voronoi(points[mine], box, batch=batch[mine] if batch is not None else None, on_failure="flag")
+            _same(name + " voronoi", got, torchvor.VoronoiCells(*(t[mine] for t in want)), problems)
+            k = 8
+            want_knn = torchvor.knn(points, k, batch=batch)
+            got_knn = tvd.knn(points[mine], k, batch=batch[mine] if batch is not None else None)
+            _same(name + " knn", got_knn, torchvor.KNN(*(t[mine] for t in want_knn)), problems)
+        if len(rounds) <= 2 * len(SCENARIOS):
+            problems.append(f"no halo grew: {rounds}")
+        # an invalid input on one rank: every rank raises, none waits
+        bad = torch.rand(5, 3, dtype=torch.float64)
+        if rank == size - 1:
+            bad[0, 0] = float("nan")
+        try:
+            tvd.voronoi(bad, UNIT)
+            problems.append("NaN on one rank: no error")
+        except ValueError as error:
+            if rank == size - 1 and "NaN" not in str(error):
+                problems.append(f"NaN on one rank: {error}")
+        # a point outside the given box on one rank: every rank raises
+        outside = torch.rand(5, 3, dtype=torch.float64) * 0.5
+        if rank == 0:
+            outside[0, 0] = 2.0
+        try:
+            tvd.voronoi(outside, UNIT)
+            problems.append("a point outside the box: no error")
+        except (ValueError, RuntimeError) as error:
+            if rank == 0 and "box" not in str(error):
+                problems.append(f"a point outside the box: {error}")
+    except Exception as error:  # noqa: BLE001 - reported to the test
+        problems.append(f"{type(error).__name__}: {error}")
+    finally:
+        with open(f"{report}.{rank}", "w") as f:
+            json.dump(problems, f)
+        dist.destroy_process_group()
+
+
+@pytest.mark.parametrize("size", [2, 3])
+def test_distributed_matches_single_process(tmp_path, size):
+    if not dist.is_available():
+        pytest.skip("torch.distributed is not available")
+    report = str(tmp_path / "report")
+    mp.spawn(_worker, args=(size, _free_port(), report), nprocs=size, join=True)
+    problems = []
+    for rank in range(size):
+        with open(f"{report}.{rank}") as f:
+            problems += [f"rank {rank}: {p}" for p in json.load(f)]
+    assert not problems, "\n".join(problems[:20])
+
+
+def test_distributed_needs_init():
+    points = torch.rand(10, 3, dtype=torch.float64)
+    if dist.is_available() and dist.is_initialized():
+        pytest.skip("a process group exists in this process")
+    with pytest.raises(RuntimeError, match="init_process_group"):
+        tvd.voronoi(points, UNIT)
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-q"]))

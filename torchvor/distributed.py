@@ -1,0 +1,429 @@
+"""Voronoi cells and k nearest neighbours of one cloud spread over the ranks of a
+``torch.distributed`` process group.
+
+Each rank passes its own points (any partition of the cloud, not necessarily
+spatial) and gets the results for its own points, in its own order; indices
+are global: rank r's point i is ``offset_r + i``, offsets in rank order (the
+cloud is the ranks' points concatenated). The results are those of the
+single-process call on that whole cloud.
+
+How: the cloud is cut into slabs along the longest axis of its box, one a
+rank, balanced by count; every point goes to its slab's rank, with a halo of
+the points of the other slabs within a width of its slab. A rank computes its
+slab's points among those (the plain op, its points ordered by global index,
+so ties break as on the whole cloud) and keeps the results that the halo
+certifies: a cell whose twice radius stays inside the halo (no absent point
+can cut it: the radius of security), a neighbour row whose k-th distance
+does. The rest run again with the halo their reach asks for, up to the whole
+cloud. The results then go back to the ranks that own the points.
+
+Collectives are ``all_to_all_single`` and ``all_reduce`` of the points'
+device: gloo for CPU tensors, NCCL for CUDA ones. Every rank of the group must
+call, with points of one dtype and device kind.
+"""
+from __future__ import annotations
+
+import math
+from typing import List, Optional, Sequence
+
+import torch
+import torch.distributed as dist
+
+from .ops import KNN, CellStatus, VoronoiCells, as_box
+from .ops import knn as _plain_knn, voronoi as _plain_voronoi
+
+__all__ = ["knn", "voronoi"]
+
+# The first halo: this many mean spacings (the cube root of the volume a point
+# of the box) on each side of a slab; then what the uncertified cells ask for.
+FIRST_HALO_SPACINGS = 3.0
+# A cell is certified when 2 radius (1 + CERTIFY_SLACK) stays inside the halo
+# (the radius of the computed vertices: see torchvor.periodic).
+CERTIFY_SLACK = 1e-2
+# Histogram bins along the cut axis that place the slab boundaries.
+BALANCE_BINS = 1 << 16
+
+
+class _Group:
+    """The process group, the ranks' point counts and offsets."""
+
+    def __init__(self, group, count: int, device: torch.device):
+        if not dist.is_available() or not dist.is_initialized():
+            raise RuntimeError("torchvor.distributed: torch.distributed is not initialized "
+                               "(call torch.distributed.init_process_group first)")
+        self.group = group
+        self.rank = dist.get_rank(group)
+        self.size = dist.get_world_size(group)
+        self.device = device
+        counts = self.all_gather_int(count)
+        self.counts = counts
+        self.offset = sum(counts[: self.rank])
+        self.total = sum(counts)
+
+    def all_gather_int(self, value: int) -> List[int]:
+        """Every rank's `value`, in rank order (one all_reduce)."""
+        row = torch.zeros(self.size, dtype=torch.int64, device=self.device)
+        row[self.rank] = value
+        dist.all_reduce(row, group=self.group)
+        return row.tolist()
+
+    def reduce(self, tensor: torch.Tensor, op) -> torch.Tensor:
+        """`tensor` reduced over the ranks (a copy)."""
+        out = tensor.clone()
+        dist.all_reduce(out, op=op, group=self.group)
+        return out
+
+    def exchange(self, dest: torch.Tensor, tensors: Sequence[torch.Tensor]) -> List[torch.Tensor]:
+        """Each row of `tensors` sent to rank `dest` of that row; returns the rows
+        this rank receives, by source rank, each source's rows in their order."""
+        order = torch.sort(dest, stable=True).indices
+        send = torch.bincount(dest, minlength=self.size)
+        recv = torch.empty_like(send)
+        dist.all_to_all_single(recv, send, group=self.group)
+        send_splits, recv_splits = send.tolist(), recv.tolist()
+        out = []
+        for tensor in tensors:
+            rows = tensor[order].contiguous()
+            received = rows.new_empty((sum(recv_splits), *rows.shape[1:]))
+            dist.all_to_all_single(received, rows, recv_splits, send_splits, group=self.group)
+            out.append(received)
+        return out
+
+
+def _check_input(points: torch.Tensor, batch: Optional[torch.Tensor], caller: str) -> Optional[str]:
+    """What is wrong with this rank's points (None: nothing)."""
+    if not isinstance(points, torch.Tensor) or points.dim() != 2 or points.shape[1] != 3:
+        return f"points must be a tensor of shape (N, 3), got {getattr(points, 'shape', type(points))}"
+    if points.dtype not in (torch.float32, torch.float64):
+        return f"points must be float32 or float64, got {points.dtype}"
+    if not bool(torch.isfinite(points).all()):
+        return "points contain NaN or Inf"
+    if batch is not None:
+        if not isinstance(batch, torch.Tensor) or batch.shape != (points.shape[0],) or batch.dtype != torch.int64:
+            return "batch must be an int64 tensor of shape (N,)"
+        if batch.numel() and (bool((batch < 0).any()) or bool((batch[1:] < batch[:-1]).any())):
+            return "batch must be sorted and non-negative"
+    return None
+
+
+def _agree(points: torch.Tensor, batch, caller: str, group) -> _Group:
+    """The group, once every rank's input is valid and all share one dtype:
+    otherwise every rank raises (none is left waiting in a collective)."""
+    device = points.device if isinstance(points, torch.Tensor) else torch.device("cpu")
+    problem = _check_input(points, batch, caller)
+    count = points.shape[0] if problem is None else 0
+    g = _Group(group, count, device)
+    dtype_code = {torch.float32: 1, torch.float64: 2}.get(getattr(points, "dtype", None), 3)
+    flags = torch.tensor([int(problem is not None), dtype_code, -dtype_code], dtype=torch.int64, device=device)
+    flags = g.reduce(flags, dist.ReduceOp.MAX)
+    if problem is not None:
+        raise ValueError(f"torchvor.distributed.{caller}: {problem}")
+    if int(flags[0]):
+        raise ValueError(f"torchvor.distributed.{caller}: another rank's input is invalid (it raised the reason)")
+    if int(flags[1]) != -int(flags[2]):
+        raise TypeError(f"torchvor.distributed.{caller}: every rank must pass points of one dtype")
+    return g
+
+
+def _global_batch(g: _Group, batch: Optional[torch.Tensor], n: int) -> Optional[torch.Tensor]:
+    """The batch vector, after checking that the ranks' vectors concatenate
+    in order (the whole cloud's must be sorted, as the plain ops ask)."""
+    uses = g.reduce(torch.tensor([int(batch is not None)], device=g.device), dist.ReduceOp.MAX)
+    if not int(uses[0]):
+        return None
+    if batch is None:
+        raise ValueError("torchvor.distributed: every rank must pass batch, or none")
+    ends = torch.full((2 * g.size,), -1, dtype=torch.int64, device=g.device)
+    if n:
+        ends[2 * g.rank], ends[2 * g.rank + 1] = -batch[0], batch[-1]  # first negated: one MAX reduces both
+    ends = g.reduce(ends, dist.ReduceOp.MAX).tolist()
+    last = -1
+    for r in range(g.size):
+        if g.counts[r]:
+            if -ends[2 * r] < last:
+                raise ValueError("torchvor.distributed: the ranks' batch vectors, concatenated in rank order, "
+                                 "must be sorted")
+            last = ends[2 * r + 1]
+    return batch
+
+
+def _global_box(g: _Group, points: torch.Tensor, box, batch: Optional[torch.Tensor]) -> torch.Tensor:
+    """(B, 2, 3) float64: the box of each cloud, the given one or the whole
+    cloud's bounding box (reduced over the ranks)."""
+    clouds = int(g.reduce(torch.tensor([int(batch.max()) + 1 if batch is not None and batch.numel() else 1],
+                                       device=g.device), dist.ReduceOp.MAX)[0])
+    if box is not None:
+        given = as_box(points, box, batch).double()
+        if given.shape[0] == 1 and clouds > 1:
+            given = given.expand(clouds, 2, 3)
+        return given.contiguous()
+    lo = torch.full((clouds, 3), math.inf, dtype=torch.float64, device=g.device)
+    hi = torch.full((clouds, 3), -math.inf, dtype=torch.float64, device=g.device)
+    if points.shape[0]:
+        index = (batch if batch is not None else torch.zeros(points.shape[0], dtype=torch.int64,
+                                                             device=g.device)).unsqueeze(1).expand(-1, 3)
+        lo = lo.scatter_reduce(0, index, points.double(), "amin")
+        hi = hi.scatter_reduce(0, index, points.double(), "amax")
+    lo = g.reduce(lo, dist.ReduceOp.MIN)
+    hi = g.reduce(hi, dist.ReduceOp.MAX)
+    empty = ~torch.isfinite(lo).all(1)
+    lo[empty], hi[empty] = 0.0, 0.0
+    return torch.stack([lo, hi], 1)
+
+
+class _Slabs:
+    """The cut: slab s holds the points whose coordinate along `axis` lies in
+    [bounds[s], bounds[s + 1]) (the outer bounds infinite), balanced by count."""
+
+    def __init__(self, g: _Group, points: torch.Tensor, box: torch.Tensor):
+        lo, hi = box[:, 0].amin(0), box[:, 1].amax(0)
+        self.axis = int(torch.argmax(hi - lo))
+        a, b = float(lo[self.axis]), float(hi[self.axis])
+        x = points[:, self.axis].double()
+        if b > a:
+            counts = torch.histc(x, bins=BALANCE_BINS, min=a, max=b) if x.numel() else \
+                torch.zeros(BALANCE_BINS, dtype=torch.float64, device=g.device)
+            counts = g.reduce(counts.double(), dist.ReduceOp.SUM)
+            cumulative = torch.cumsum(counts, 0)
+            targets = torch.arange(1, g.size, dtype=torch.float64, device=g.device) * (g.total / g.size)
+            edge = torch.searchsorted(cumulative, targets, right=True).clamp_max(BALANCE_BINS - 1)
+            inner = (a + (edge.double() + 1) * ((b - a) / BALANCE_BINS)).tolist()
+        else:
+            inner = [a] * (g.size - 1)
+        self.bounds = [-math.inf, *inner, math.inf]
+        self.size = g.size
+        # the mean spacing of the densest cloud's box: the first halo's unit
+        volume = (box[:, 1] - box[:, 0]).clamp_min(0).prod(1).max()
+        self.spacing = float((volume / max(g.total, 1)) ** (1.0 / 3.0)) if float(volume) > 0 else \
+            float((hi - lo).max()) / max(g.total, 1)
+
+    def owner(self, coordinate: torch.Tensor) -> torch.Tensor:
+        """(N,) int64: the slab of each coordinate along the axis."""
+        inner = torch.tensor(self.bounds[1:-1], dtype=torch.float64, device=coordinate.device)
+        return torch.searchsorted(inner, coordinate.double().contiguous(), right=True)
+
+    def halo_dest(self, coordinate: torch.Tensor, home: int, widths: List[float]):
+        """(rows, dest): the rows (of points in slab `home`) within widths[s] of
+        another slab s, one entry a (row, s) pair."""
+        rows, dests = [], []
+        x = coordinate.double()
+        for s in range(self.size):
+            if s == home:
+                continue
+            near = (x >= self.bounds[s] - widths[s]) & (x < self.bounds[s + 1] + widths[s])
+            idx = near.nonzero().squeeze(1)
+            rows.append(idx)
+            dests.append(torch.full_like(idx, s))
+        if not rows:
+            empty = torch.zeros(0, dtype=torch.int64, device=coordinate.device)
+            return empty, empty
+        return torch.cat(rows), torch.cat(dests)
+
+    def clearance(self, coordinate: torch.Tensor, slab: int, width: float) -> torch.Tensor:
+        """(N,) float64: the distance of each coordinate (in `slab`) to the
+        edge of its slab widened by `width` (inf on an outer side)."""
+        x = coordinate.double()
+        below = x - (self.bounds[slab] - width)
+        above = (self.bounds[slab + 1] + width) - x
+        return torch.minimum(below, above)
+
+
+class _Local:
+    """This rank's slab: its points (with global index, batch and the rank
+    that owns each) and the halo, ordered by global index."""
+
+    def __init__(self, g: _Group, slabs: _Slabs, points: torch.Tensor, batch: Optional[torch.Tensor]):
+        self.g, self.slabs = g, slabs
+        n = points.shape[0]
+        index = torch.arange(g.offset, g.offset + n, dtype=torch.int64, device=g.device)
+        b = batch if batch is not None else torch.zeros(n, dtype=torch.int64, device=g.device)
+        dest = slabs.owner(points[:, slabs.axis])
+        self.points, self.index, self.batch = g.exchange(dest, [points, index, b])
+
+    def cloud(self, width: float):
+        """(points, global index, batch, own): the slab's points and every point
+        of the other slabs within `width` of it (every rank passes the same
+        width), sorted by global index."""
+        g = self.g
+        rows, dest = self.slabs.halo_dest(self.points[:, self.slabs.axis], g.rank, [width] * g.size)
+        halo = g.exchange(dest, [self.points[rows], self.index[rows], self.batch[rows]])
+        points = torch.cat([self.points, halo[0]])
+        index = torch.cat([self.index, halo[1]])
+        batch = torch.cat([self.batch, halo[2]])
+        own = torch.zeros(index.numel(), dtype=torch.bool, device=g.device)
+        own[: self.index.numel()] = True
+        order = torch.sort(index).indices
+        return points[order], index[order], batch[order], own[order]
+
+    def send_back(self, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """`values` of this slab's points (global `index`) sent to the ranks that
+        own them: this rank's rows, in its input order."""
+        g = self.g
+        offsets = torch.tensor([sum(g.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
+        origin = torch.searchsorted(offsets, index, right=True)
+        got_index, got = g.exchange(origin, [index, values])
+        out = values.new_empty((g.counts[g.rank], *values.shape[1:]))
+        out[got_index - g.offset] = got
+        return out
+
+
+def _together(g: _Group, fn, *args):
+    """fn(*args) on every rank; if it raises on any, every rank raises (that
+    rank its own error), so that none is left waiting in a collective."""
+    error = None
+    try:
+        result = fn(*args)
+    except Exception as caught:  # noqa: BLE001 - re-raised below, on every rank
+        error, result = caught, None
+    failed = g.reduce(torch.tensor([int(error is not None)], device=g.device), dist.ReduceOp.MAX)
+    if error is not None:
+        raise error
+    if int(failed[0]):
+        raise RuntimeError("torchvor.distributed: the call raised on another rank (that rank names the cause)")
+    return result
+
+
+def _check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torch.Tensor) -> None:
+    """This rank's points inside their clouds' boxes (as the plain op asks),
+    checked where they are, before they move."""
+    if points.shape[0] == 0:
+        return
+    if box.shape[0] > 1 and batch is None:
+        raise ValueError("torchvor.distributed.voronoi: a box per cloud needs batch")
+    rows = box[batch] if batch is not None else box[0].expand(points.shape[0], 2, 3)
+    if bool(((points < rows[:, 0]) | (points > rows[:, 1])).any()):
+        raise ValueError("torchvor.distributed.voronoi: points must lie inside box (lo <= p <= hi)")
+
+
+def _halo_rounds(g: _Group, local: _Local, compute, reach_of, max_rounds: int = 8):
+    """Runs `compute(points, batch)` on the slab and a growing halo until every
+    slab point's `reach_of(result, rows)` (inf: not yet certified) fits in its
+    clearance, the last round with the whole cloud; returns (the global index
+    of each point computed, the rows of the slab's own points, the result)."""
+    width = FIRST_HALO_SPACINGS * local.slabs.spacing
+    for round_ in range(max_rounds + 1):
+        if round_ == max_rounds:
+            width = math.inf
+        points, index, batch, own = local.cloud(width)
+        result = _together(g, compute, points, batch)
+        rows = own.nonzero().squeeze(1)
+        reach = reach_of(result, rows)
+        clearance = local.slabs.clearance(points[rows, local.slabs.axis], g.rank, width)
+        short = ~(reach <= clearance)
+        need = float((reach[short] - clearance[short]).max()) if bool(short.any()) else 0.0
+        wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
+        if wanted == 0.0 or width == math.inf:
+            return index, rows, result
+        width = max(2 * width, width + 1.25 * wanted)  # inf (or NaN: then the whole cloud) when a reach is
+        if not width < math.inf:
+            width = math.inf
+    raise AssertionError("unreachable: the last round holds the whole cloud")
+
+
+def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch.Tensor] = None,
+            **kwargs) -> VoronoiCells:
+    """:func:`torchvor.voronoi` of the cloud that the ranks' points make
+    together (rank order), each rank getting its own points' cells.
+
+    Args:
+        points: (N_r, 3) float32 or float64, this rank's points (any N_r, 0 too).
+        box: as :func:`torchvor.voronoi`; None: the whole cloud's bounding box.
+        group: the process group (default: the world).
+        batch: (N_r,) int64 batch vector of this rank's points; the ranks'
+            vectors concatenated in rank order must be sorted.
+        **kwargs: ``k``, ``on_failure``, ``memory_budget`` as :func:`torchvor.voronoi`.
+
+    Returns:
+        :class:`torchvor.VoronoiCells` of this rank's points, in their order:
+        the single-process call's results on the whole cloud. The outputs carry
+        no gradient (no distributed backward yet).
+    """
+    if kwargs.get("periodic", False):
+        raise NotImplementedError("torchvor.distributed.voronoi: periodic boxes are not supported yet")
+    on_failure = kwargs.pop("on_failure", "warn")
+    g = _agree(points, batch, "voronoi", group)
+    points = points.detach()
+    batch = _global_batch(g, batch, points.shape[0])
+    full_box = _global_box(g, points, box, batch)
+    box_arg = full_box.to(points.dtype)
+    _together(g, _check_inside, points, batch, box_arg)
+    slabs = _Slabs(g, points, full_box)
+    local = _Local(g, slabs, points, batch)
+
+    def compute(p, b):
+        return _plain_voronoi(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
+
+    def reach_of(cells, rows):
+        computed = (cells.status[rows] == CellStatus.SUCCESS) | (cells.status[rows] == CellStatus.DUPLICATE)
+        reach = 2 * cells.radius[rows].double() * (1 + CERTIFY_SLACK)
+        return torch.where(computed, reach, torch.full_like(reach, math.inf))
+
+    index, rows, cells = _halo_rounds(g, local, compute, reach_of)
+    packed = torch.cat([cells.volume[rows].double().unsqueeze(1), cells.centroid[rows].double(),
+                        cells.second_moment[rows].double().unsqueeze(1), cells.status[rows].double().unsqueeze(1),
+                        cells.neighbors_needed[rows].double().unsqueeze(1), cells.radius[rows].double().unsqueeze(1)], 1)
+    mine = local.send_back(index[rows], packed)
+    dtype = points.dtype
+    out = VoronoiCells(mine[:, 0].to(dtype), mine[:, 1:4].to(dtype), mine[:, 4].to(dtype), mine[:, 5].to(torch.int8),
+                       mine[:, 6].to(torch.int32), mine[:, 7].to(dtype))
+    _report_failures(out, on_failure)
+    return out
+
+
+def _report_failures(cells: VoronoiCells, on_failure: str) -> None:
+    """voronoi's on_failure for this rank's cells."""
+    if on_failure not in ("raise", "warn", "flag"):
+        raise ValueError(f"torchvor.distributed.voronoi: on_failure must be 'raise', 'warn' or 'flag', "
+                         f"got {on_failure!r}")
+    ok = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
+    failed = int((~ok).sum())
+    if failed and on_failure != "flag":
+        message = f"torchvor.distributed.voronoi: {failed} cell(s) could not be computed (NaN outputs)"
+        if on_failure == "raise":
+            raise RuntimeError(message)
+        import warnings
+
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def knn(points: torch.Tensor, k: int, *, group=None, batch: Optional[torch.Tensor] = None,
+        exclude_self: Optional[bool] = None) -> KNN:
+    """:func:`torchvor.knn` of the cloud that the ranks' points make together
+    (rank order), each rank getting the rows of its own points.
+
+    Args:
+        points: (N_r, 3) float32 or float64, this rank's points (the queries too).
+        k: neighbours a row, ``k >= 1``.
+        group: the process group (default: the world).
+        batch: (N_r,) int64 batch vector; the ranks' vectors concatenated in rank
+            order must be sorted. A point sees only points of its batch element.
+        exclude_self: whether a point skips itself (default True).
+
+    Returns:
+        :class:`torchvor.KNN` (dist2, idx), (N_r, k): idx are global indices
+        (rank r's point i is ``offset_r + i``), as the single-process call
+        gives them; missing neighbours are inf / -1.
+    """
+    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+        raise ValueError(f"torchvor.distributed.knn: k must be an int >= 1, got {k!r}")
+    g = _agree(points, batch, "knn", group)
+    points = points.detach()
+    batch = _global_batch(g, batch, points.shape[0])
+    slabs = _Slabs(g, points, _global_box(g, points, None, batch))
+    local = _Local(g, slabs, points, batch)
+    skip = True if exclude_self is None else bool(exclude_self)
+
+    def compute(p, b):
+        return _plain_knn(p, k, batch=b if batch is not None else None, exclude_self=skip)
+
+    def reach_of(result, rows):
+        last = result.dist2[rows, -1].double()  # inf where the row is short of k: the whole cloud decides
+        return torch.sqrt(last)
+
+    index, rows, result = _halo_rounds(g, local, compute, reach_of)
+    idx = result.idx[rows]
+    idx = torch.where(idx >= 0, index[idx.clamp_min(0)], idx)  # the local cloud's rows to global indices
+    dist2 = result.dist2[rows]
+    mine_idx = local.send_back(index[rows], idx)
+    mine_dist2 = local.send_back(index[rows], dist2)
+    return KNN(mine_dist2, mine_idx)
