@@ -104,6 +104,30 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
             want = torchvor.voronoi(points, box, batch=batch, on_failure="flag")
             got = tvd.voronoi(points[mine], box, batch=batch[mine] if batch is not None else None, on_failure="flag")
             _same(name + " voronoi", got, torchvor.VoronoiCells(*(t[mine] for t in want)), problems)
+            want_graph = torchvor.voronoi_graph(points, box, batch=batch, on_failure="flag")
+            got_graph = tvd.voronoi_graph(points[mine], box, batch=batch[mine] if batch is not None else None,
+                                          on_failure="flag")
+            _same(name + " graph cells", got_graph.cells, torchvor.VoronoiCells(*(t[mine] for t in want_graph.cells)),
+                  problems)
+            ends = [cuts[rank], cuts[rank + 1]]
+            edge = (want_graph.edge_index[1] >= ends[0]) & (want_graph.edge_index[1] < ends[1])
+            for field in ("edge_index", "area", "centroid"):
+                a, b = getattr(got_graph, field), getattr(want_graph, field)
+                b = b[:, edge] if field == "edge_index" else b[edge]
+                if a.shape != b.shape or not torch.equal(a, b):
+                    problems.append(f"{name} graph: {field} differs ({tuple(a.shape)} vs {tuple(b.shape)})")
+            if not torch.equal(got_graph.wall_area, want_graph.wall_area[mine]):
+                problems.append(f"{name} graph: wall_area differs")
+            if how == "even" and dtype == torch.float64 and kind in ("white", "batches"):
+                want_lloyd, want_history = torchvor.lloyd(points, box, iters=3, batch=batch, return_history=True)
+                got_lloyd, got_history = tvd.lloyd(points[mine], box, iters=3, return_history=True,
+                                                   batch=batch[mine] if batch is not None else None)
+                if not torch.equal(got_lloyd, want_lloyd[mine]):
+                    problems.append(f"{name} lloyd: points differ")
+                for a, b in zip(got_history, want_history):
+                    if (abs(a.energy - b.energy) > 1e-12 * abs(b.energy)
+                            or abs(a.max_displacement - b.max_displacement) > 1e-12 * b.max_displacement):
+                        problems.append(f"{name} lloyd: history differs: {a} vs {b}")
             k = 8
             want_knn = torchvor.knn(points, k, batch=batch)
             got_knn = tvd.knn(points[mine], k, batch=batch[mine] if batch is not None else None)

@@ -24,15 +24,19 @@ call, with points of one dtype and device kind.
 from __future__ import annotations
 
 import math
+import sys
+import time
+import warnings
 from typing import List, Optional, Sequence
 
 import torch
 import torch.distributed as dist
 
-from .ops import KNN, CellStatus, VoronoiCells, as_box
+from .graph import VoronoiGraph, voronoi_graph as _plain_graph
+from .ops import KNN, CellStatus, VoronoiCells, _check_on_failure, as_box
 from .ops import knn as _plain_knn, voronoi as _plain_voronoi
 
-__all__ = ["knn", "voronoi"]
+__all__ = ["knn", "lloyd", "voronoi", "voronoi_graph"]
 
 # The first halo: this many mean spacings (the cube root of the volume a point
 # of the box) on each side of a slab; then what the uncertified cells ask for.
@@ -255,13 +259,22 @@ class _Local:
         order = torch.sort(index).indices
         return points[order], index[order], batch[order], own[order]
 
+    def owner_rank(self, index: torch.Tensor) -> torch.Tensor:
+        """(N,) int64: the rank that owns each global index."""
+        g = self.g
+        starts = torch.tensor([sum(g.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
+        return torch.searchsorted(starts, index, right=True)
+
+    def send_edges(self, edges: torch.Tensor, values: torch.Tensor):
+        """Edges (E, 2) of global (neighbour, cell) and their `values` sent to
+        the rank that owns each cell."""
+        return tuple(self.g.exchange(self.owner_rank(edges[:, 1]), [edges, values]))
+
     def send_back(self, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
         """`values` of this slab's points (global `index`) sent to the ranks that
         own them: this rank's rows, in its input order."""
         g = self.g
-        offsets = torch.tensor([sum(g.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
-        origin = torch.searchsorted(offsets, index, right=True)
-        got_index, got = g.exchange(origin, [index, values])
+        got_index, got = g.exchange(self.owner_rank(index), [index, values])
         out = values.new_empty((g.counts[g.rank], *values.shape[1:]))
         out[got_index - g.offset] = got
         return out
@@ -295,11 +308,14 @@ def _check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torc
         raise ValueError("torchvor.distributed.voronoi: points must lie inside box (lo <= p <= hi)")
 
 
-def _halo_rounds(g: _Group, local: _Local, compute, reach_of, max_rounds: int = 8):
-    """Runs `compute(points, batch)` on the slab and a growing halo until every
-    slab point's `reach_of(result, rows)` (inf: not yet certified) fits in its
-    clearance, the last round with the whole cloud; returns (the global index
-    of each point computed, the rows of the slab's own points, the result)."""
+def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int = 8):
+    """Runs `compute(points, batch)` on the slab and a growing halo until
+    `shortfall(result, clearance, rows)` is 0 for every slab point, the last
+    round with the whole cloud; returns (the global index of each point
+    computed, the rows of the slab's own points, the result). `clearance`:
+    each computed point's distance to the halo's edge; the shortfall (R,) of
+    the rows `rows`: how much wider the halo must be for them (inf: as wide
+    as the cloud)."""
     width = FIRST_HALO_SPACINGS * local.slabs.spacing
     for round_ in range(max_rounds + 1):
         if round_ == max_rounds:
@@ -307,10 +323,10 @@ def _halo_rounds(g: _Group, local: _Local, compute, reach_of, max_rounds: int = 
         points, index, batch, own = local.cloud(width)
         result = _together(g, compute, points, batch)
         rows = own.nonzero().squeeze(1)
-        reach = reach_of(result, rows)
-        clearance = local.slabs.clearance(points[rows, local.slabs.axis], g.rank, width)
-        short = ~(reach <= clearance)
-        need = float((reach[short] - clearance[short]).max()) if bool(short.any()) else 0.0
+        clearance = local.slabs.clearance(points[:, local.slabs.axis], g.rank, width)
+        short = torch.nan_to_num(shortfall(result, clearance, rows), nan=math.inf)
+        short = torch.where(clearance[rows] == math.inf, torch.zeros_like(short), short)  # the whole cloud is there
+        need = float(short.max()) if short.numel() else 0.0
         wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
         if wanted == 0.0 or width == math.inf:
             return index, rows, result
@@ -318,6 +334,53 @@ def _halo_rounds(g: _Group, local: _Local, compute, reach_of, max_rounds: int = 
         if not width < math.inf:
             width = math.inf
     raise AssertionError("unreachable: the last round holds the whole cloud")
+
+
+def _cell_shortfall(cells: VoronoiCells, clearance: torch.Tensor) -> torch.Tensor:
+    """(N,) float64 of every computed cell: how far twice its radius (with
+    CERTIFY_SLACK) passes its clearance; inf where the cell failed."""
+    computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
+    reach = 2 * cells.radius.double() * (1 + CERTIFY_SLACK)
+    excess = (reach - clearance).clamp_min(0)
+    return torch.where(computed, torch.nan_to_num(excess, nan=math.inf), torch.full_like(excess, math.inf))
+
+
+def _pack_cells(cells: VoronoiCells, rows: torch.Tensor) -> torch.Tensor:
+    """(R, 8) float64: the fields of cells `rows` (exact for each)."""
+    return torch.cat([cells.volume[rows].double().unsqueeze(1), cells.centroid[rows].double(),
+                      cells.second_moment[rows].double().unsqueeze(1), cells.status[rows].double().unsqueeze(1),
+                      cells.neighbors_needed[rows].double().unsqueeze(1), cells.radius[rows].double().unsqueeze(1)], 1)
+
+
+def _unpack_cells(packed: torch.Tensor, dtype: torch.dtype) -> VoronoiCells:
+    return VoronoiCells(packed[:, 0].to(dtype), packed[:, 1:4].to(dtype), packed[:, 4].to(dtype),
+                        packed[:, 5].to(torch.int8), packed[:, 6].to(torch.int32), packed[:, 7].to(dtype))
+
+
+def _setup(points, box, batch, group, caller: str):
+    """The group, points (detached), batch, boxes (B, 2, 3) in the points'
+    dtype, and the slabs, after the checks every rank agrees on."""
+    g = _agree(points, batch, caller, group)
+    points = points.detach()
+    batch = _global_batch(g, batch, points.shape[0])
+    full_box = _global_box(g, points, box, batch)
+    box_arg = full_box.to(points.dtype)
+    _together(g, _check_inside, points, batch, box_arg)
+    return g, points, batch, box_arg, _Slabs(g, points, full_box)
+
+
+def _cells(g: _Group, slabs: _Slabs, points, batch, box_arg, kwargs) -> VoronoiCells:
+    """This rank's points' cells (the plain voronoi's, on_failure "flag")."""
+    local = _Local(g, slabs, points, batch)
+
+    def compute(p, b):
+        return _plain_voronoi(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
+
+    def shortfall(cells, clearance, rows):
+        return _cell_shortfall(cells, clearance)[rows]
+
+    index, rows, cells = _halo_rounds(g, local, compute, shortfall)
+    return _unpack_cells(local.send_back(index[rows], _pack_cells(cells, rows)), points.dtype)
 
 
 def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch.Tensor] = None,
@@ -338,51 +401,149 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
         the single-process call's results on the whole cloud. The outputs carry
         no gradient (no distributed backward yet).
     """
-    if kwargs.get("periodic", False):
+    if kwargs.pop("periodic", False):
         raise NotImplementedError("torchvor.distributed.voronoi: periodic boxes are not supported yet")
     on_failure = kwargs.pop("on_failure", "warn")
-    g = _agree(points, batch, "voronoi", group)
-    points = points.detach()
-    batch = _global_batch(g, batch, points.shape[0])
-    full_box = _global_box(g, points, box, batch)
-    box_arg = full_box.to(points.dtype)
-    _together(g, _check_inside, points, batch, box_arg)
-    slabs = _Slabs(g, points, full_box)
-    local = _Local(g, slabs, points, batch)
-
-    def compute(p, b):
-        return _plain_voronoi(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
-
-    def reach_of(cells, rows):
-        computed = (cells.status[rows] == CellStatus.SUCCESS) | (cells.status[rows] == CellStatus.DUPLICATE)
-        reach = 2 * cells.radius[rows].double() * (1 + CERTIFY_SLACK)
-        return torch.where(computed, reach, torch.full_like(reach, math.inf))
-
-    index, rows, cells = _halo_rounds(g, local, compute, reach_of)
-    packed = torch.cat([cells.volume[rows].double().unsqueeze(1), cells.centroid[rows].double(),
-                        cells.second_moment[rows].double().unsqueeze(1), cells.status[rows].double().unsqueeze(1),
-                        cells.neighbors_needed[rows].double().unsqueeze(1), cells.radius[rows].double().unsqueeze(1)], 1)
-    mine = local.send_back(index[rows], packed)
-    dtype = points.dtype
-    out = VoronoiCells(mine[:, 0].to(dtype), mine[:, 1:4].to(dtype), mine[:, 4].to(dtype), mine[:, 5].to(torch.int8),
-                       mine[:, 6].to(torch.int32), mine[:, 7].to(dtype))
-    _report_failures(out, on_failure)
+    _check_on_failure("distributed.voronoi", on_failure)
+    g, points, batch, box_arg, slabs = _setup(points, box, batch, group, "voronoi")
+    out = _cells(g, slabs, points, batch, box_arg, kwargs)
+    _report_failures(out, on_failure, "voronoi")
     return out
 
 
-def _report_failures(cells: VoronoiCells, on_failure: str) -> None:
-    """voronoi's on_failure for this rank's cells."""
-    if on_failure not in ("raise", "warn", "flag"):
-        raise ValueError(f"torchvor.distributed.voronoi: on_failure must be 'raise', 'warn' or 'flag', "
-                         f"got {on_failure!r}")
+def voronoi_graph(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch.Tensor] = None,
+                  **kwargs) -> VoronoiGraph:
+    """:func:`torchvor.voronoi_graph` of the cloud that the ranks' points make
+    together (rank order), each rank getting its own cells and their faces.
+
+    Args:
+        points, box, group, batch: as :func:`voronoi`.
+        **kwargs: ``k``, ``on_failure``, ``memory_budget`` as :func:`torchvor.voronoi_graph`.
+
+    Returns:
+        :class:`torchvor.VoronoiGraph` of this rank's cells: ``edge_index``
+        (2, E_r) holds global indices (row 1 this rank's points, sorted by it
+        then row 0), ``wall_area`` and ``cells`` this rank's rows in its
+        order: the single-process call's on the whole cloud (each face is the
+        mean of what its two cells computed, so a cell counts as computed when
+        its neighbours are too). No gradient.
+    """
+    if kwargs.pop("periodic", False):
+        raise NotImplementedError("torchvor.distributed.voronoi_graph: periodic boxes are not supported yet")
+    on_failure = kwargs.pop("on_failure", "warn")
+    _check_on_failure("distributed.voronoi_graph", on_failure)
+    g, points, batch, box_arg, slabs = _setup(points, box, batch, group, "voronoi_graph")
+    local = _Local(g, slabs, points, batch)
+
+    def compute(p, b):
+        return _plain_graph(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
+
+    def shortfall(graph, clearance, rows):
+        own_cell = _cell_shortfall(graph.cells, clearance)
+        source, target = graph.edge_index
+        worst = own_cell.scatter_reduce(0, target, own_cell[source], "amax")  # and every neighbour's
+        return worst[rows]
+
+    index, rows, graph = _halo_rounds(g, local, compute, shortfall)
+    own = torch.zeros(index.numel(), dtype=torch.bool, device=g.device)
+    own[rows] = True
+    source, target = graph.edge_index
+    mine = own[target]
+    edges = torch.stack([index[source[mine]], index[target[mine]]], 1)
+    dtype = points.dtype
+    floats = torch.cat([graph.area[mine].double().unsqueeze(1), graph.centroid[mine].double()], 1)
+    edges, floats = local.send_edges(edges, floats)
+    key = edges[:, 1] * max(g.total, 1) + edges[:, 0]  # by cell, then neighbour
+    order = torch.sort(key).indices
+    edges, floats = edges[order], floats[order]
+    packed = torch.cat([_pack_cells(graph.cells, rows), graph.wall_area[rows].double()], 1)
+    back = local.send_back(index[rows], packed)
+    cells = _unpack_cells(back[:, :8], dtype)
+    _report_failures(cells, on_failure, "voronoi_graph")
+    return VoronoiGraph(edges.t().contiguous(), floats[:, 0].to(dtype), floats[:, 1:4].to(dtype),
+                        back[:, 8:14].to(dtype), cells)
+
+
+def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: Optional[float] = None,
+          k: Optional[int] = None, batch: Optional[torch.Tensor] = None, progress: bool = False, callback=None,
+          return_history: bool = False):
+    """:func:`torchvor.lloyd` of the cloud that the ranks' points make together
+    (rank order), each rank getting its own points relaxed, in its order.
+
+    Each iteration computes the cells over the ranks (:func:`voronoi`; the
+    slabs are cut once) and moves every point to its cell's centroid (a point
+    whose cell failed stays, with a RuntimeWarning on its rank), as the
+    single-process relaxation does: the same points, bit for bit in float64.
+
+    Args:
+        points, box, group, batch: as :func:`voronoi` (box None: the first
+            points' bounding box, kept for every iteration).
+        iters, tol, k, progress, return_history: as :func:`torchvor.lloyd`;
+            ``tol`` and the history's measures are over the whole cloud
+            (``neighbors_needed``: the largest of the ranks' percentiles;
+            ``k``: the given k, or 0 where each call's pilot picks it);
+            ``progress`` prints on rank 0.
+        callback: ``callback(iteration, points, cells)`` on every rank with its
+            own moved points and cells; True on any rank stops every rank.
+
+    Returns:
+        This rank's relaxed points (a new tensor), or ``(points, history)``.
+    """
+    from .lloyd import LloydStep, _progress_line
+
+    if not isinstance(iters, int) or isinstance(iters, bool) or iters < 0:
+        raise ValueError(f"torchvor.distributed.lloyd: iters must be a non-negative int, got {iters!r}")
+    if tol is not None and not tol >= 0:
+        raise ValueError(f"torchvor.distributed.lloyd: tol must be None or >= 0, got {tol!r}")
+    if k is not None and (not isinstance(k, int) or isinstance(k, bool) or k < 1):
+        raise ValueError(f"torchvor.distributed.lloyd: k must be None or a positive int, got {k!r}")
+    g, current, batch, box_arg, slabs = _setup(points, box, batch, group, "lloyd")
+    edges = (box_arg[:, 1] - box_arg[:, 0]).double().norm(dim=1)
+    diagonal = edges[batch] if batch is not None else edges[0].expand(current.shape[0])
+    history = []
+    for iteration in range(iters):
+        start = time.perf_counter()
+        cells = _cells(g, slabs, current, batch, box_arg, {"k": k})
+        computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
+        moved = torch.where(computed.unsqueeze(1), cells.centroid, current)
+        needed = 0
+        if bool(computed.any()):
+            counts = cells.neighbors_needed[computed].double()
+            needed = int(math.ceil(float(torch.quantile(counts[:: max(1, counts.numel() // 65536)], 0.99))))
+        moves = ((moved - current).double().norm(dim=1) / diagonal).max() if current.shape[0] else \
+            torch.zeros((), dtype=torch.float64, device=g.device)
+        sums = g.reduce(torch.stack([cells.second_moment.double().sum(), (~computed).sum().double()]),
+                        dist.ReduceOp.SUM)
+        maxima = g.reduce(torch.stack([moves.double(), torch.tensor(float(needed), dtype=torch.float64,
+                                                                    device=g.device)]), dist.ReduceOp.MAX)
+        energy, failed = float(sums[0]), int(sums[1])
+        mine_failed = int((~computed).sum())
+        if mine_failed:
+            warnings.warn(f"torchvor.distributed.lloyd: {mine_failed} cell(s) could not be computed in iteration "
+                          f"{iteration}; their points stay in place", RuntimeWarning, stacklevel=2)
+        step = LloydStep(iteration=iteration, energy=energy, max_displacement=float(maxima[0]),
+                         seconds=time.perf_counter() - start, k=k or 0, neighbors_needed=int(maxima[1]),
+                         failed=failed)
+        history.append(step)
+        current = moved
+        if progress and g.rank == 0:
+            print(_progress_line(step, iters), file=sys.stderr, flush=True)
+        stop = callback is not None and callback(iteration, current, cells) is True
+        stop = bool(g.reduce(torch.tensor([int(stop)], device=g.device), dist.ReduceOp.MAX)[0])
+        if stop or (tol is not None and step.max_displacement < tol):
+            break
+    current = current.clone()
+    return (current, history) if return_history else current
+
+
+def _report_failures(cells: VoronoiCells, on_failure: str, caller: str) -> None:
+    """on_failure of voronoi and voronoi_graph for this rank's cells."""
     ok = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
     failed = int((~ok).sum())
     if failed and on_failure != "flag":
-        message = f"torchvor.distributed.voronoi: {failed} cell(s) could not be computed (NaN outputs)"
+        message = f"torchvor.distributed.{caller}: {failed} cell(s) could not be computed (NaN outputs)"
         if on_failure == "raise":
             raise RuntimeError(message)
-        import warnings
-
         warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
@@ -416,11 +577,11 @@ def knn(points: torch.Tensor, k: int, *, group=None, batch: Optional[torch.Tenso
     def compute(p, b):
         return _plain_knn(p, k, batch=b if batch is not None else None, exclude_self=skip)
 
-    def reach_of(result, rows):
-        last = result.dist2[rows, -1].double()  # inf where the row is short of k: the whole cloud decides
-        return torch.sqrt(last)
+    def shortfall(result, clearance, rows):
+        last = torch.sqrt(result.dist2[rows, -1].double())  # inf where a row is short of k: the whole cloud decides
+        return (last - clearance[rows]).clamp_min(0)
 
-    index, rows, result = _halo_rounds(g, local, compute, reach_of)
+    index, rows, result = _halo_rounds(g, local, compute, shortfall)
     idx = result.idx[rows]
     idx = torch.where(idx >= 0, index[idx.clamp_min(0)], idx)  # the local cloud's rows to global indices
     dist2 = result.dist2[rows]
