@@ -132,6 +132,15 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
             want_knn = torchvor.knn(points, k, batch=batch)
             got_knn = tvd.knn(points[mine], k, batch=batch[mine] if batch is not None else None)
             _same(name + " knn", got_knn, torchvor.KNN(*(t[mine] for t in want_knn)), problems)
+            # queries of their own, another share of them on each rank (rank 0 has none)
+            queries = samples.white_noise(500, seed=12, dtype=dtype) * 1.2 - 0.1
+            query_batch = (torch.arange(500) >= 250).long() if batch is not None else None
+            q_cuts = [0] + [500 * r // (size - 1) for r in range(size)]
+            q_mine = slice(q_cuts[rank], q_cuts[rank + 1])
+            want_q = torchvor.knn(points, k, queries, batch=batch, query_batch=query_batch)
+            got_q = tvd.knn(points[mine], k, queries[q_mine], batch=batch[mine] if batch is not None else None,
+                            query_batch=query_batch[q_mine] if query_batch is not None else None)
+            _same(name + " knn queries", got_q, torchvor.KNN(*(t[q_mine] for t in want_q)), problems)
         if len(rounds) <= 2 * len(SCENARIOS):
             problems.append(f"no halo grew: {rounds}")
         # an invalid input on one rank: every rank raises, none waits

@@ -129,21 +129,25 @@ def _agree(points: torch.Tensor, batch, caller: str, group) -> _Group:
     return g
 
 
-def _global_batch(g: _Group, batch: Optional[torch.Tensor], n: int) -> Optional[torch.Tensor]:
+def _global_batch(g: _Group, batch: Optional[torch.Tensor], n: int,
+                  counts: Optional[List[int]] = None) -> Optional[torch.Tensor]:
     """The batch vector, after checking that the ranks' vectors concatenate
-    in order (the whole cloud's must be sorted, as the plain ops ask)."""
-    uses = g.reduce(torch.tensor([int(batch is not None)], device=g.device), dist.ReduceOp.MAX)
-    if not int(uses[0]):
+    in order (the whole cloud's must be sorted, as the plain ops ask);
+    `counts`: the ranks' row counts (default: their points')."""
+    counts = g.counts if counts is None else counts
+    has = int(batch is not None)
+    uses = g.reduce(torch.tensor([has, -has], device=g.device), dist.ReduceOp.MAX).tolist()
+    if not uses[0]:
         return None
-    if batch is None:
-        raise ValueError("torchvor.distributed: every rank must pass batch, or none")
+    if uses[1] == 0:  # some rank passed none
+        raise ValueError("torchvor.distributed: every rank must pass a batch vector, or none")
     ends = torch.full((2 * g.size,), -1, dtype=torch.int64, device=g.device)
     if n:
         ends[2 * g.rank], ends[2 * g.rank + 1] = -batch[0], batch[-1]  # first negated: one MAX reduces both
     ends = g.reduce(ends, dist.ReduceOp.MAX).tolist()
     last = -1
     for r in range(g.size):
-        if g.counts[r]:
+        if counts[r]:
             if -ends[2 * r] < last:
                 raise ValueError("torchvor.distributed: the ranks' batch vectors, concatenated in rank order, "
                                  "must be sorted")
@@ -310,12 +314,12 @@ def _check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torc
 
 def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int = 8):
     """Runs `compute(points, batch)` on the slab and a growing halo until
-    `shortfall(result, clearance, rows)` is 0 for every slab point, the last
+    `shortfall(result, clearance, rows, width)` is 0 for every row, the last
     round with the whole cloud; returns (the global index of each point
     computed, the rows of the slab's own points, the result). `clearance`:
-    each computed point's distance to the halo's edge; the shortfall (R,) of
-    the rows `rows`: how much wider the halo must be for them (inf: as wide
-    as the cloud)."""
+    each computed point's distance to the halo's edge; the shortfall: how
+    much wider the halo must be for each row that counts (the slab's points
+    `rows`, or the queries), inf: as wide as the cloud."""
     width = FIRST_HALO_SPACINGS * local.slabs.spacing
     for round_ in range(max_rounds + 1):
         if round_ == max_rounds:
@@ -324,8 +328,9 @@ def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int =
         result = _together(g, compute, points, batch)
         rows = own.nonzero().squeeze(1)
         clearance = local.slabs.clearance(points[:, local.slabs.axis], g.rank, width)
-        short = torch.nan_to_num(shortfall(result, clearance, rows), nan=math.inf)
-        short = torch.where(clearance[rows] == math.inf, torch.zeros_like(short), short)  # the whole cloud is there
+        short = torch.nan_to_num(shortfall(result, clearance, rows, width), nan=math.inf)
+        if width == math.inf or g.size == 1:
+            short = torch.zeros_like(short)  # the whole cloud is there
         need = float(short.max()) if short.numel() else 0.0
         wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
         if wanted == 0.0 or width == math.inf:
@@ -376,7 +381,7 @@ def _cells(g: _Group, slabs: _Slabs, points, batch, box_arg, kwargs) -> VoronoiC
     def compute(p, b):
         return _plain_voronoi(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
 
-    def shortfall(cells, clearance, rows):
+    def shortfall(cells, clearance, rows, width):
         return _cell_shortfall(cells, clearance)[rows]
 
     index, rows, cells = _halo_rounds(g, local, compute, shortfall)
@@ -438,7 +443,7 @@ def voronoi_graph(points: torch.Tensor, box=None, *, group=None, batch: Optional
     def compute(p, b):
         return _plain_graph(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
 
-    def shortfall(graph, clearance, rows):
+    def shortfall(graph, clearance, rows, width):
         own_cell = _cell_shortfall(graph.cells, clearance)
         source, target = graph.edge_index
         worst = own_cell.scatter_reduce(0, target, own_cell[source], "amax")  # and every neighbour's
@@ -547,44 +552,101 @@ def _report_failures(cells: VoronoiCells, on_failure: str, caller: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
-def knn(points: torch.Tensor, k: int, *, group=None, batch: Optional[torch.Tensor] = None,
+def knn(points: torch.Tensor, k: int, queries: Optional[torch.Tensor] = None, *, group=None,
+        batch: Optional[torch.Tensor] = None, query_batch: Optional[torch.Tensor] = None,
         exclude_self: Optional[bool] = None) -> KNN:
-    """:func:`torchvor.knn` of the cloud that the ranks' points make together
-    (rank order), each rank getting the rows of its own points.
+    """:func:`torchvor.knn` in the cloud that the ranks' points make together
+    (rank order), for this rank's queries.
 
     Args:
-        points: (N_r, 3) float32 or float64, this rank's points (the queries too).
+        points: (N_r, 3) float32 or float64, this rank's points.
         k: neighbours a row, ``k >= 1``.
+        queries: (M_r, 3) this rank's queries (the points' dtype); None: its points.
         group: the process group (default: the world).
-        batch: (N_r,) int64 batch vector; the ranks' vectors concatenated in rank
-            order must be sorted. A point sees only points of its batch element.
-        exclude_self: whether a point skips itself (default True).
+        batch, query_batch: (N_r,) and (M_r,) int64 batch vectors; the ranks'
+            vectors concatenated in rank order must be sorted; a query sees only
+            points of its batch element (query_batch is required with batch
+            where queries are given, as in :func:`torchvor.knn`).
+        exclude_self: with queries None, whether a point skips itself (default True).
 
     Returns:
-        :class:`torchvor.KNN` (dist2, idx), (N_r, k): idx are global indices
-        (rank r's point i is ``offset_r + i``), as the single-process call
-        gives them; missing neighbours are inf / -1.
+        :class:`torchvor.KNN` (dist2, idx), (M_r, k): idx are global indices
+        into the whole cloud (rank r's point i is ``offset_r + i``), as the
+        single-process call gives them; missing neighbours are inf / -1.
     """
     if not isinstance(k, int) or isinstance(k, bool) or k < 1:
         raise ValueError(f"torchvor.distributed.knn: k must be an int >= 1, got {k!r}")
+    if queries is not None and exclude_self:
+        raise ValueError("torchvor.distributed.knn: exclude_self applies only when queries is None")
     g = _agree(points, batch, "knn", group)
     points = points.detach()
     batch = _global_batch(g, batch, points.shape[0])
     slabs = _Slabs(g, points, _global_box(g, points, None, batch))
     local = _Local(g, slabs, points, batch)
-    skip = True if exclude_self is None else bool(exclude_self)
+    skip = queries is None and (exclude_self is None or bool(exclude_self))
+    asked = None if queries is None else _Queries(g, slabs, points, batch, queries.detach(), query_batch)
 
     def compute(p, b):
-        return _plain_knn(p, k, batch=b if batch is not None else None, exclude_self=skip)
+        if asked is None:
+            return _plain_knn(p, k, batch=b if batch is not None else None, exclude_self=skip)
+        return _plain_knn(p, k, asked.points, batch=b if batch is not None else None,
+                          query_batch=asked.batch if batch is not None else None)
 
-    def shortfall(result, clearance, rows):
+    def shortfall(result, clearance, rows, width):
+        if asked is None:
+            rows_clearance = clearance[rows]
+        else:
+            rows_clearance = slabs.clearance(asked.points[:, slabs.axis], g.rank, width)
+            rows = slice(None)
         last = torch.sqrt(result.dist2[rows, -1].double())  # inf where a row is short of k: the whole cloud decides
-        return (last - clearance[rows]).clamp_min(0)
+        return (last - rows_clearance).clamp_min(0)
 
     index, rows, result = _halo_rounds(g, local, compute, shortfall)
+    if asked is not None:
+        rows = slice(None)
     idx = result.idx[rows]
     idx = torch.where(idx >= 0, index[idx.clamp_min(0)], idx)  # the local cloud's rows to global indices
     dist2 = result.dist2[rows]
-    mine_idx = local.send_back(index[rows], idx)
-    mine_dist2 = local.send_back(index[rows], dist2)
-    return KNN(mine_dist2, mine_idx)
+    if asked is None:
+        return KNN(local.send_back(index[rows], dist2), local.send_back(index[rows], idx))
+    return KNN(asked.send_back(dist2), asked.send_back(idx))
+
+
+class _Queries:
+    """This rank's slab's queries (sorted by global query index), routed by
+    coordinate as the points are, and how their rows go back."""
+
+    def __init__(self, g: _Group, slabs: _Slabs, points, batch, queries: torch.Tensor, query_batch):
+        problem = None
+        if not isinstance(queries, torch.Tensor) or queries.dim() != 2 or queries.shape[1] != 3:
+            problem = "queries must have shape (M, 3)"
+        elif queries.dtype != points.dtype or not bool(torch.isfinite(queries).all()):
+            problem = "queries must have the points' dtype and be finite"
+        elif batch is not None and (query_batch is None or query_batch.shape != (queries.shape[0],)):
+            problem = "query_batch (M,) is required with batch when queries are given"
+        _together(g, _raise_if, problem)
+        self.g = g
+        m = queries.shape[0]
+        self.counts = g.all_gather_int(m)
+        self.offset = sum(self.counts[: g.rank])
+        if batch is not None:
+            _global_batch(g, query_batch, m, self.counts)
+        qindex = torch.arange(self.offset, self.offset + m, dtype=torch.int64, device=g.device)
+        qbatch = query_batch if batch is not None else torch.zeros(m, dtype=torch.int64, device=g.device)
+        got = g.exchange(slabs.owner(queries[:, slabs.axis]), [queries, qindex, qbatch])
+        order = torch.sort(got[1]).indices
+        self.points, self.index, self.batch = (t[order] for t in got)
+
+    def send_back(self, values: torch.Tensor) -> torch.Tensor:
+        """`values` of the slab's queries sent to the ranks that asked them."""
+        g = self.g
+        starts = torch.tensor([sum(self.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
+        got_index, got = g.exchange(torch.searchsorted(starts, self.index, right=True), [self.index, values])
+        out = values.new_empty((self.counts[g.rank], *values.shape[1:]))
+        out[got_index - self.offset] = got
+        return out
+
+
+def _raise_if(problem: Optional[str]) -> None:
+    if problem is not None:
+        raise ValueError(f"torchvor.distributed.knn: {problem}")
