@@ -124,6 +124,19 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
                                                    batch=batch[mine] if batch is not None else None)
                 if not torch.equal(got_lloyd, want_lloyd[mine]):
                     problems.append(f"{name} lloyd: points differ")
+                # a callback that stops on rank 0 only stops every rank, after that iteration
+                seen = []
+
+                def stop_at_one(iteration, moved, cells):
+                    seen.append((iteration, moved.shape[0], cells.volume.shape[0]))
+                    return rank == 0 and iteration == 1
+
+                stopped = tvd.lloyd(points[mine], box, iters=5, callback=stop_at_one,
+                                    batch=batch[mine] if batch is not None else None)
+                want_two = torchvor.lloyd(points, box, iters=2, batch=batch)
+                n_mine = cuts[rank + 1] - cuts[rank]
+                if not torch.equal(stopped, want_two[mine]) or seen != [(0, n_mine, n_mine), (1, n_mine, n_mine)]:
+                    problems.append(f"{name} lloyd callback: stopped wrong ({seen})")
                 for a, b in zip(got_history, want_history):
                     if (abs(a.energy - b.energy) > 1e-12 * abs(b.energy)
                             or abs(a.max_displacement - b.max_displacement) > 1e-12 * b.max_displacement):

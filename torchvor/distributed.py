@@ -263,6 +263,18 @@ class _Local:
         order = torch.sort(index).indices
         return points[order], index[order], batch[order], own[order]
 
+    def move(self, points: torch.Tensor) -> None:
+        """The slab's points moved to `points` (rows of `self.points`); those
+        now in another slab go to its rank (rows stay sorted by global index)."""
+        dest = self.slabs.owner(points[:, self.slabs.axis])
+        if bool(self.g.reduce(torch.tensor([int(bool((dest != self.g.rank).any()))], device=self.g.device),
+                              dist.ReduceOp.MAX)[0]):
+            points, index, batch = self.g.exchange(dest, [points, self.index, self.batch])
+            order = torch.sort(index).indices
+            self.points, self.index, self.batch = points[order], index[order], batch[order]
+        else:
+            self.points = points
+
     def owner_rank(self, index: torch.Tensor) -> torch.Tensor:
         """(N,) int64: the rank that owns each global index."""
         g = self.g
@@ -274,13 +286,17 @@ class _Local:
         the rank that owns each cell."""
         return tuple(self.g.exchange(self.owner_rank(edges[:, 1]), [edges, values]))
 
-    def send_back(self, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-        """`values` of this slab's points (global `index`) sent to the ranks that
-        own them: this rank's rows, in its input order."""
+    def send_back(self, index: torch.Tensor, *values: torch.Tensor) -> List[torch.Tensor]:
+        """Each of `values`, rows of this slab's points (global `index`), sent to
+        the ranks that own them: this rank's rows, in its input order."""
         g = self.g
-        got_index, got = g.exchange(self.owner_rank(index), [index, values])
-        out = values.new_empty((g.counts[g.rank], *values.shape[1:]))
-        out[got_index - g.offset] = got
+        got_index, *got = g.exchange(self.owner_rank(index), [index, *values])
+        rows = got_index - g.offset
+        out = []
+        for value, received in zip(values, got):
+            mine = value.new_empty((g.counts[g.rank], *value.shape[1:]))
+            mine[rows] = received
+            out.append(mine)
         return out
 
 
@@ -350,16 +366,19 @@ def _cell_shortfall(cells: VoronoiCells, clearance: torch.Tensor) -> torch.Tenso
     return torch.where(computed, torch.nan_to_num(excess, nan=math.inf), torch.full_like(excess, math.inf))
 
 
-def _pack_cells(cells: VoronoiCells, rows: torch.Tensor) -> torch.Tensor:
-    """(R, 8) float64: the fields of cells `rows` (exact for each)."""
-    return torch.cat([cells.volume[rows].double().unsqueeze(1), cells.centroid[rows].double(),
-                      cells.second_moment[rows].double().unsqueeze(1), cells.status[rows].double().unsqueeze(1),
-                      cells.neighbors_needed[rows].double().unsqueeze(1), cells.radius[rows].double().unsqueeze(1)], 1)
+def _pack_cells(cells: VoronoiCells, rows: torch.Tensor, *more: torch.Tensor):
+    """The fields of cells `rows` as two tensors (and `more` floating columns
+    appended to the first): (R, 6 + ...) of the floating fields, (R, 2) int32
+    of status and neighbors_needed."""
+    floats = torch.cat([cells.volume[rows].unsqueeze(1), cells.centroid[rows], cells.second_moment[rows].unsqueeze(1),
+                        cells.radius[rows].to(cells.volume.dtype).unsqueeze(1), *more], 1)
+    ints = torch.stack([cells.status[rows].to(torch.int32), cells.neighbors_needed[rows]], 1)
+    return floats, ints
 
 
-def _unpack_cells(packed: torch.Tensor, dtype: torch.dtype) -> VoronoiCells:
-    return VoronoiCells(packed[:, 0].to(dtype), packed[:, 1:4].to(dtype), packed[:, 4].to(dtype),
-                        packed[:, 5].to(torch.int8), packed[:, 6].to(torch.int32), packed[:, 7].to(dtype))
+def _unpack_cells(floats: torch.Tensor, ints: torch.Tensor) -> VoronoiCells:
+    return VoronoiCells(floats[:, 0], floats[:, 1:4], floats[:, 4], ints[:, 0].to(torch.int8),
+                        ints[:, 1].contiguous(), floats[:, 5])
 
 
 def _setup(points, box, batch, group, caller: str):
@@ -374,18 +393,18 @@ def _setup(points, box, batch, group, caller: str):
     return g, points, batch, box_arg, _Slabs(g, points, full_box)
 
 
-def _cells(g: _Group, slabs: _Slabs, points, batch, box_arg, kwargs) -> VoronoiCells:
-    """This rank's points' cells (the plain voronoi's, on_failure "flag")."""
-    local = _Local(g, slabs, points, batch)
+def _slab_cells(g: _Group, local: "_Local", box_arg, batched: bool, kwargs) -> VoronoiCells:
+    """The cells of this rank's slab points (the plain voronoi's, on_failure
+    "flag"), in the order of `local.points`."""
 
     def compute(p, b):
-        return _plain_voronoi(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
+        return _plain_voronoi(p, box_arg, batch=b if batched else None, on_failure="flag", **kwargs)
 
     def shortfall(cells, clearance, rows, width):
         return _cell_shortfall(cells, clearance)[rows]
 
-    index, rows, cells = _halo_rounds(g, local, compute, shortfall)
-    return _unpack_cells(local.send_back(index[rows], _pack_cells(cells, rows)), points.dtype)
+    _, rows, cells = _halo_rounds(g, local, compute, shortfall)
+    return VoronoiCells(*(t[rows] for t in cells))
 
 
 def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch.Tensor] = None,
@@ -411,7 +430,9 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
     on_failure = kwargs.pop("on_failure", "warn")
     _check_on_failure("distributed.voronoi", on_failure)
     g, points, batch, box_arg, slabs = _setup(points, box, batch, group, "voronoi")
-    out = _cells(g, slabs, points, batch, box_arg, kwargs)
+    local = _Local(g, slabs, points, batch)
+    cells = _slab_cells(g, local, box_arg, batch is not None, kwargs)
+    out = _unpack_cells(*local.send_back(local.index, *_pack_cells(cells, slice(None))))
     _report_failures(out, on_failure, "voronoi")
     return out
 
@@ -455,18 +476,16 @@ def voronoi_graph(points: torch.Tensor, box=None, *, group=None, batch: Optional
     source, target = graph.edge_index
     mine = own[target]
     edges = torch.stack([index[source[mine]], index[target[mine]]], 1)
-    dtype = points.dtype
-    floats = torch.cat([graph.area[mine].double().unsqueeze(1), graph.centroid[mine].double()], 1)
-    edges, floats = local.send_edges(edges, floats)
+    faces = torch.cat([graph.area[mine].unsqueeze(1), graph.centroid[mine]], 1)
+    edges, faces = local.send_edges(edges, faces)
     key = edges[:, 1] * max(g.total, 1) + edges[:, 0]  # by cell, then neighbour
     order = torch.sort(key).indices
-    edges, floats = edges[order], floats[order]
-    packed = torch.cat([_pack_cells(graph.cells, rows), graph.wall_area[rows].double()], 1)
-    back = local.send_back(index[rows], packed)
-    cells = _unpack_cells(back[:, :8], dtype)
+    edges, faces = edges[order], faces[order]
+    floats, ints = local.send_back(index[rows], *_pack_cells(graph.cells, rows, graph.wall_area[rows]))
+    cells = _unpack_cells(floats, ints)
     _report_failures(cells, on_failure, "voronoi_graph")
-    return VoronoiGraph(edges.t().contiguous(), floats[:, 0].to(dtype), floats[:, 1:4].to(dtype),
-                        back[:, 8:14].to(dtype), cells)
+    return VoronoiGraph(edges.t().contiguous(), faces[:, 0].contiguous(), faces[:, 1:4].contiguous(),
+                        floats[:, 6:12].contiguous(), cells)
 
 
 def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: Optional[float] = None,
@@ -504,18 +523,20 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
         raise ValueError(f"torchvor.distributed.lloyd: k must be None or a positive int, got {k!r}")
     g, current, batch, box_arg, slabs = _setup(points, box, batch, group, "lloyd")
     edges = (box_arg[:, 1] - box_arg[:, 0]).double().norm(dim=1)
-    diagonal = edges[batch] if batch is not None else edges[0].expand(current.shape[0])
+    # the points stay on their slabs' ranks between iterations; those that cross a boundary move
+    local = _Local(g, slabs, current, batch)
     history = []
     for iteration in range(iters):
         start = time.perf_counter()
-        cells = _cells(g, slabs, current, batch, box_arg, {"k": k})
+        cells = _slab_cells(g, local, box_arg, batch is not None, {"k": k})
         computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
-        moved = torch.where(computed.unsqueeze(1), cells.centroid, current)
+        moved = torch.where(computed.unsqueeze(1), cells.centroid, local.points)
         needed = 0
         if bool(computed.any()):
             counts = cells.neighbors_needed[computed].double()
             needed = int(math.ceil(float(torch.quantile(counts[:: max(1, counts.numel() // 65536)], 0.99))))
-        moves = ((moved - current).double().norm(dim=1) / diagonal).max() if current.shape[0] else \
+        diagonal = edges[local.batch] if batch is not None else edges[0].expand(moved.shape[0])
+        moves = ((moved - local.points).double().norm(dim=1) / diagonal).max() if moved.shape[0] else \
             torch.zeros((), dtype=torch.float64, device=g.device)
         sums = g.reduce(torch.stack([cells.second_moment.double().sum(), (~computed).sum().double()]),
                         dist.ReduceOp.SUM)
@@ -530,14 +551,17 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
                          seconds=time.perf_counter() - start, k=k or 0, neighbors_needed=int(maxima[1]),
                          failed=failed)
         history.append(step)
-        current = moved
+        stop = False
+        if callback is not None:  # the caller's rows and order
+            mine, *floats_ints = local.send_back(local.index, moved, *_pack_cells(cells, slice(None)))
+            stop = callback(iteration, mine, _unpack_cells(*floats_ints)) is True
+        local.move(moved)
         if progress and g.rank == 0:
             print(_progress_line(step, iters), file=sys.stderr, flush=True)
-        stop = callback is not None and callback(iteration, current, cells) is True
         stop = bool(g.reduce(torch.tensor([int(stop)], device=g.device), dist.ReduceOp.MAX)[0])
         if stop or (tol is not None and step.max_displacement < tol):
             break
-    current = current.clone()
+    (current,) = local.send_back(local.index, local.points)
     return (current, history) if return_history else current
 
 
@@ -608,8 +632,8 @@ def knn(points: torch.Tensor, k: int, queries: Optional[torch.Tensor] = None, *,
     idx = torch.where(idx >= 0, index[idx.clamp_min(0)], idx)  # the local cloud's rows to global indices
     dist2 = result.dist2[rows]
     if asked is None:
-        return KNN(local.send_back(index[rows], dist2), local.send_back(index[rows], idx))
-    return KNN(asked.send_back(dist2), asked.send_back(idx))
+        return KNN(*local.send_back(index[rows], dist2, idx))
+    return KNN(*asked.send_back(dist2, idx))
 
 
 class _Queries:
@@ -637,13 +661,16 @@ class _Queries:
         order = torch.sort(got[1]).indices
         self.points, self.index, self.batch = (t[order] for t in got)
 
-    def send_back(self, values: torch.Tensor) -> torch.Tensor:
-        """`values` of the slab's queries sent to the ranks that asked them."""
+    def send_back(self, *values: torch.Tensor) -> List[torch.Tensor]:
+        """Each of `values`, rows of the slab's queries, sent to the ranks that asked them."""
         g = self.g
         starts = torch.tensor([sum(self.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
-        got_index, got = g.exchange(torch.searchsorted(starts, self.index, right=True), [self.index, values])
-        out = values.new_empty((self.counts[g.rank], *values.shape[1:]))
-        out[got_index - self.offset] = got
+        got_index, *got = g.exchange(torch.searchsorted(starts, self.index, right=True), [self.index, *values])
+        out = []
+        for value, received in zip(values, got):
+            mine = value.new_empty((self.counts[g.rank], *value.shape[1:]))
+            mine[got_index - self.offset] = received
+            out.append(mine)
         return out
 
 
