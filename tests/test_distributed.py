@@ -197,6 +197,27 @@ def test_distributed_matches_single_process(tmp_path, size):
     assert not problems, "\n".join(problems[:20])
 
 
+def test_distributed_fuzz_slice(tmp_path):
+    """The fuzzer's first cases (seed 1, every kind, both dtypes, invalid ones
+    too) over 3 ranks, bit for bit against the single-process calls
+    (tests/fuzz_distributed.py runs more)."""
+    if not dist.is_available():
+        pytest.skip("torch.distributed is not available")
+    import argparse
+
+    import fuzz_distributed
+
+    args = argparse.Namespace(seed=1, start=0, cases=45, max_n=2000, quiet=True)
+    report = str(tmp_path / "report")
+    mp.spawn(fuzz_distributed.worker, args=(3, _free_port(), args, report), nprocs=3, join=True)
+    problems = []
+    for rank in range(3):
+        with open(f"{report}.{rank}") as f:
+            problems += [f"rank {rank}: {line['case']}: {line['problems'][:3]}" for line in json.load(f)
+                         if line["problems"]]
+    assert not problems, "\n".join(problems[:10])
+
+
 def test_distributed_needs_init():
     points = torch.rand(10, 3, dtype=torch.float64)
     if dist.is_available() and dist.is_initialized():

@@ -141,7 +141,7 @@ def _global_batch(g: _Group, batch: Optional[torch.Tensor], n: int,
         return None
     if uses[1] == 0:  # some rank passed none
         raise ValueError("torchvor.distributed: every rank must pass a batch vector, or none")
-    ends = torch.full((2 * g.size,), -1, dtype=torch.int64, device=g.device)
+    ends = torch.full((2 * g.size,), -(1 << 62), dtype=torch.int64, device=g.device)  # below any entry
     if n:
         ends[2 * g.rank], ends[2 * g.rank + 1] = -batch[0], batch[-1]  # first negated: one MAX reduces both
     ends = g.reduce(ends, dist.ReduceOp.MAX).tolist()
@@ -279,7 +279,7 @@ class _Local:
         """(N,) int64: the rank that owns each global index."""
         g = self.g
         starts = torch.tensor([sum(g.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
-        return torch.searchsorted(starts, index, right=True)
+        return torch.searchsorted(starts, index.contiguous(), right=True)
 
     def send_edges(self, edges: torch.Tensor, values: torch.Tensor):
         """Edges (E, 2) of global (neighbour, cell) and their `values` sent to
