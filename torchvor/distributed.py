@@ -5,7 +5,11 @@ Each rank passes its own points (any partition of the cloud, not necessarily
 spatial) and gets the results for its own points, in its own order; indices
 are global: rank r's point i is ``offset_r + i``, offsets in rank order (the
 cloud is the ranks' points concatenated). The results are those of the
-single-process call on that whole cloud.
+single-process call on that whole cloud: in float64 bit for bit for the cells
+that both compute in the same pass (every cell whose neighbours the first
+pass's k covers), otherwise to rounding: a retried cell's tier and precision
+depend on the other cells its pass retries, and they round in another order
+(as the same cell does between two single-process calls with different k).
 
 How: the cloud is cut into slabs along the longest axis of its box, one a
 rank, balanced by count; every point goes to its slab's rank, with a halo of
