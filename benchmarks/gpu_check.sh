@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, then run the steps named (default: cudatests):
 # the tests (CPU and CUDA), the benchmarks, profiles and sanitizers; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|periodic|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
+#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|periodic|distributed|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
 # compare needs BASELINE=<source tree of another commit> (e.g. `git archive <commit> | tar -x -C .baseline`):
 # it is built beside this tree, its CUDA outputs compared bit for bit, and both timed in turns.
 set -u -o pipefail
@@ -98,6 +98,16 @@ for step in "${@:-cudatests}"; do
         > "$OUT/fuzz.log" 2>&1; grep -A40 "^fuzz summary" "$OUT/fuzz.log" | grep -v "^  \[second_moment\]\|^      replay" | head -60
       cat "$OUT"/fuzz.json.worker*.log > "$OUT/fuzz_cases.log" 2>/dev/null; rm -f "$OUT"/fuzz.json.worker* "$OUT"/fuzz.json.next  # few files come back
       grep -q "^fuzz: OK" "$OUT/fuzz.log" || status=1 ;;
+    distributed)  # torchvor.distributed over the GPUs there are (NCCL, a GPU a rank): the fuzzer's cases against
+                  # the single-process calls (DIST_FUZZ_CASES), then strong and weak scaling (DIST_SIZES) of blue noise
+      gpus=$(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)
+      python3 tests/fuzz_distributed.py --device cuda --size $gpus --seed ${FUZZ_SEED:-1} --cases ${DIST_FUZZ_CASES:-60} \
+        --max-n 20000 --quiet 2>&1 | grep -v Warning | tail -20 | tee "$OUT/distributed.log"
+      grep -q "ranks: OK" "$OUT/distributed.log" || status=1
+      python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_SIZES:-10M,100M} --ranks 1,$gpus 2>&1 \
+        | grep -v USDT | tee -a "$OUT/distributed.log"
+      python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_WEAK_SIZES:-100M} --ranks 1,$gpus --weak 2>&1 \
+        | grep -v USDT | tee -a "$OUT/distributed.log" ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,
                # the op's default k; TIMELINE_SIZES)

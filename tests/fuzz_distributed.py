@@ -4,7 +4,7 @@ distributed voronoi, voronoi_graph and knn against the single-process calls on t
 whole cloud (bit for bit; float32 cells up to rounding), invalid cases raising on
 every rank. A line per case; the summary last.
 
-    python tests/fuzz_distributed.py --size 3 --seed 1 --cases 200 --max-n 5000
+    python tests/fuzz_distributed.py --size 3 --seed 1 --cases 200 --max-n 5000 [--device cuda]
 """
 from __future__ import annotations
 
@@ -82,8 +82,8 @@ def compare_faces(got, want, cells: slice, n: int, rtol: float, tally) -> list:
     return problems
 
 
-def run_case(case, rank: int, size: int, tally) -> list:
-    points, box, batch = case.arguments("cpu")
+def run_case(case, rank: int, size: int, tally, device="cpu") -> list:
+    points, box, batch = case.arguments(device)
     rng = np.random.default_rng([case.seed, case.index, 99])
     cuts = np.sort(rng.integers(0, case.n + 1, size - 1)).tolist()
     cuts = [0, *cuts, case.n]
@@ -117,13 +117,18 @@ def run_case(case, rank: int, size: int, tally) -> list:
 def worker(rank: int, size: int, port: int, args, report: str) -> None:
     os.environ["MASTER_ADDR"], os.environ["MASTER_PORT"] = "127.0.0.1", str(port)
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", rank=rank, world_size=size, timeout=datetime.timedelta(seconds=600))
+    device = "cpu"
+    if getattr(args, "device", "cpu") == "cuda":  # a GPU a rank, NCCL
+        device = f"cuda:{rank % torch.cuda.device_count()}"
+        torch.cuda.set_device(device)
+    dist.init_process_group("nccl" if device != "cpu" else "gloo", rank=rank, world_size=size,
+                            timeout=datetime.timedelta(seconds=600))
     lines = []
     tally = {"bitwise": 0, "rounding": 0}
     for index in range(args.start, args.start + args.cases):
         case = make_case(args.seed, index, max_n=args.max_n)
         try:
-            problems = run_case(case, rank, size, tally)
+            problems = run_case(case, rank, size, tally, device)
         except Exception as error:  # noqa: BLE001 - a finding
             problems = [f"{type(error).__name__}: {error}"]
         lines.append({"case": case.describe(), "problems": problems})
@@ -143,6 +148,8 @@ def main() -> int:
     parser.add_argument("--cases", type=int, default=30)
     parser.add_argument("--max-n", type=int, default=5000)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                        help="cuda: a GPU a rank (ranks share GPUs beyond their count), NCCL")
     args = parser.parse_args()
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
