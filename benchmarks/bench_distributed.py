@@ -32,6 +32,8 @@ def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
     device = torch.device(args.device, rank) if args.device == "cuda" else torch.device("cpu")
     if args.device == "cuda":
         torch.cuda.set_device(device)
+    else:  # the cores shared among the ranks
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // ranks))
     dist.init_process_group("nccl" if args.device == "cuda" else "gloo", rank=rank, world_size=ranks,
                             timeout=datetime.timedelta(seconds=900))
     dtype = getattr(torch, args.dtype)

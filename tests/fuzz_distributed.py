@@ -40,7 +40,8 @@ def close(a: torch.Tensor, b: torch.Tensor, rtol: float) -> torch.Tensor:
 
 def compare(name, got, want, rtol: float, tally) -> list:
     """The fields of two named tuples that differ beyond `rtol` (integer fields:
-    at all); `tally` counts the fields equal bit for bit and those only close."""
+    at all, but float32 cells' neighbour counts, which rounding moves by one);
+    `tally` counts the fields equal bit for bit and those only close."""
     problems = []
     for field, a, b in zip(got._fields, got, want):
         if a is None and b is None:
@@ -51,7 +52,7 @@ def compare(name, got, want, rtol: float, tally) -> list:
         if torch.equal(a, b) or bool(((a == b) | (a.isnan() & b.isnan()) if a.is_floating_point() else a == b).all()):
             tally["bitwise"] += 1
             continue
-        ok = close(a, b, rtol)
+        ok = close(a, b, rtol) if field != "neighbors_needed" or rtol < 1e-6 else (a - b).abs() <= 1
         if bool(ok.all()):
             tally["rounding"] += 1
         else:

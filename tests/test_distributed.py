@@ -64,10 +64,14 @@ SCENARIOS = [("white", "even", torch.float64), ("white", "first", torch.float64)
 def _same(name, got, want, problems):
     """Bit for bit in float64; float32 cells up to rounding (a float32 cell's
     vertices are rounded to 18 bits in the first tier, and which pass
-    computes a cell depends on the pilot's k, which each rank's share picks)."""
+    computes a cell depends on the pilot's k, which each rank's share picks),
+    their neighbour counts to one."""
+    float32_cells = got[0].dtype == torch.float32 and "knn" not in name
     for field, a, b in zip(got._fields, got, want):
-        if a.dtype == torch.float32 and not name.endswith("knn"):
+        if float32_cells and a.dtype == torch.float32:
             close = torch.isclose(a.double(), b.double(), rtol=1e-5, atol=1e-7) | (a.isnan() & b.isnan())
+        elif float32_cells and field == "neighbors_needed":  # rounding moves a radius of security by one
+            close = (a - b).abs() <= 1
         else:
             close = a == b
         if a.shape != b.shape or not bool(close.all()):

@@ -361,6 +361,65 @@ def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int =
     raise AssertionError("unreachable: the last round holds the whole cloud")
 
 
+def _certify_rows(g: _Group, local: _Local, compute, shortfall, extract, max_rounds: int = 8) -> List[torch.Tensor]:
+    """_halo_rounds for results a row of the slab's points each: the first
+    round computes the slab with the first halo, each later one only the rows
+    not yet certified, among the points within 1.25 times the reach they asked
+    for (along the cut axis) of a wider halo. `extract(result, index, rows)`
+    gives the rows' outputs (tensors, row by row; `index` the global index of
+    each point computed); returns them for every slab point, in
+    `local.points`' order."""
+    width = FIRST_HALO_SPACINGS * local.slabs.spacing
+    outputs: Optional[List[torch.Tensor]] = None
+    pending = reach = None  # the rows still to certify (None: all), and the reach each asks for
+    axis = local.slabs.axis
+    for round_ in range(max_rounds + 1):
+        if round_ == max_rounds:
+            width = math.inf
+        points, index, batch, own = local.cloud(width)
+        rows = own.nonzero().squeeze(1)
+        clearance = local.slabs.clearance(points[:, axis], g.rank, width)
+        if pending is None:
+            seeds, sub = rows, None
+        else:  # the points within reach (along the axis) of a pending seed, the seeds among them
+            x = points[:, axis].double()
+            sub = _within_any(x, x[rows[pending]], reach).nonzero().squeeze(1)
+            seeds = torch.searchsorted(sub, rows[pending])
+            points, index, batch, clearance = points[sub], index[sub], batch[sub], clearance[sub].clone()
+            clearance[seeds] = torch.minimum(clearance[seeds], reach)  # a point left out lies farther
+        result = _together(g, compute, points, batch)
+        short = torch.nan_to_num(shortfall(result, clearance, seeds, width), nan=math.inf)
+        if width == math.inf or g.size == 1:
+            short = torch.zeros_like(short)  # the whole cloud is there
+        done = short == 0
+        values = extract(result, index, seeds)
+        if outputs is None:
+            outputs = [v.new_empty((rows.numel(), *v.shape[1:])) for v in values]
+        at = torch.arange(rows.numel(), device=g.device) if pending is None else pending
+        for out, v in zip(outputs, values):
+            out[at[done]] = v[done]
+        pending, reach = at[~done], 1.25 * (short[~done] + clearance[seeds[~done]])
+        need = float(short.max()) if short.numel() else 0.0
+        wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
+        if wanted == 0.0:
+            return outputs
+        width = max(2 * width, width + 1.25 * wanted)  # inf (or NaN: then the whole cloud) when a reach is
+        if not width < math.inf:
+            width = math.inf
+    raise AssertionError("unreachable: the last round holds the whole cloud")
+
+
+def _within_any(x: torch.Tensor, centres: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the coordinates `x` within `reach` of one of `centres` (the
+    union of the intervals centre +- reach)."""
+    if centres.numel() == 0:
+        return torch.zeros_like(x, dtype=torch.bool)
+    starts, order = torch.sort(centres - reach)
+    ends = torch.cummax((centres + reach)[order], 0).values
+    at = torch.searchsorted(starts, x.contiguous(), right=True) - 1
+    return (at >= 0) & (x <= ends[at.clamp_min(0)])
+
+
 def _cell_shortfall(cells: VoronoiCells, clearance: torch.Tensor) -> torch.Tensor:
     """(N,) float64 of every computed cell: how far twice its radius (with
     CERTIFY_SLACK) passes its clearance; inf where the cell failed."""
@@ -407,8 +466,10 @@ def _slab_cells(g: _Group, local: "_Local", box_arg, batched: bool, kwargs) -> V
     def shortfall(cells, clearance, rows, width):
         return _cell_shortfall(cells, clearance)[rows]
 
-    _, rows, cells = _halo_rounds(g, local, compute, shortfall)
-    return VoronoiCells(*(t[rows] for t in cells))
+    def extract(cells, index, rows):
+        return _pack_cells(cells, rows)
+
+    return _unpack_cells(*_certify_rows(g, local, compute, shortfall, extract))
 
 
 def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch.Tensor] = None,
@@ -629,15 +690,14 @@ def knn(points: torch.Tensor, k: int, queries: Optional[torch.Tensor] = None, *,
         last = torch.sqrt(result.dist2[rows, -1].double())  # inf where a row is short of k: the whole cloud decides
         return (last - rows_clearance).clamp_min(0)
 
-    index, rows, result = _halo_rounds(g, local, compute, shortfall)
-    if asked is not None:
-        rows = slice(None)
-    idx = result.idx[rows]
-    idx = torch.where(idx >= 0, index[idx.clamp_min(0)], idx)  # the local cloud's rows to global indices
-    dist2 = result.dist2[rows]
+    def extract(result, index, rows):
+        idx = result.idx[rows]
+        return [result.dist2[rows], torch.where(idx >= 0, index[idx.clamp_min(0)], idx)]  # global indices
+
     if asked is None:
-        return KNN(*local.send_back(index[rows], dist2, idx))
-    return KNN(*asked.send_back(dist2, idx))
+        return KNN(*local.send_back(local.index, *_certify_rows(g, local, compute, shortfall, extract)))
+    index, _, result = _halo_rounds(g, local, compute, shortfall)
+    return KNN(*asked.send_back(*extract(result, index, slice(None))))
 
 
 class _Queries:
