@@ -122,8 +122,9 @@ def worker(rank: int, size: int, port: int, args, report: str) -> None:
     if getattr(args, "device", "cpu") == "cuda":  # a GPU a rank, NCCL
         device = f"cuda:{rank % torch.cuda.device_count()}"
         torch.cuda.set_device(device)
+    # a rank left waiting fails after this (an exception on one rank only)
     dist.init_process_group("nccl" if device != "cpu" else "gloo", rank=rank, world_size=size,
-                            timeout=datetime.timedelta(seconds=600))
+                            timeout=datetime.timedelta(seconds=args.collective_timeout))
     lines = []
     tally = {"bitwise": 0, "rounding": 0}
     for index in range(args.start, args.start + args.cases):
@@ -135,6 +136,8 @@ def worker(rank: int, size: int, port: int, args, report: str) -> None:
         lines.append({"case": case.describe(), "problems": problems})
         if rank == 0 and not args.quiet:
             print(f"{case.describe()}: {'ok' if not problems else problems}", flush=True)
+        if problems and any(p.split(":")[0].endswith(("Error", "Exception")) for p in problems):
+            break  # the ranks may no longer meet in the same collectives: stop here
     lines.append({"tally": tally})
     with open(f"{report}.{rank}", "w") as f:
         json.dump(lines, f)
@@ -149,6 +152,8 @@ def main() -> int:
     parser.add_argument("--cases", type=int, default=30)
     parser.add_argument("--max-n", type=int, default=5000)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--collective-timeout", type=float, default=300.0,
+                        help="seconds a rank waits in a collective before it fails")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                         help="cuda: a GPU a rank (ranks share GPUs beyond their count), NCCL")
     args = parser.parse_args()

@@ -211,7 +211,7 @@ def test_distributed_fuzz_slice(tmp_path):
 
     import fuzz_distributed
 
-    args = argparse.Namespace(seed=1, start=0, cases=45, max_n=2000, quiet=True)
+    args = argparse.Namespace(seed=1, start=0, cases=45, max_n=2000, quiet=True, collective_timeout=120.0)
     report = str(tmp_path / "report")
     mp.spawn(fuzz_distributed.worker, args=(3, _free_port(), args, report), nprocs=3, join=True)
     problems = []

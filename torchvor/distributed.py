@@ -39,6 +39,7 @@ import torch.distributed as dist
 from .graph import VoronoiGraph, voronoi_graph as _plain_graph
 from .ops import KNN, CellStatus, VoronoiCells, _check_on_failure, as_box
 from .ops import knn as _plain_knn, voronoi as _plain_voronoi
+from .radius import radius as _plain_radius
 
 __all__ = ["knn", "lloyd", "voronoi", "voronoi_graph"]
 
@@ -345,10 +346,14 @@ def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int =
         if round_ == max_rounds:
             width = math.inf
         points, index, batch, own = local.cloud(width)
-        result = _together(g, compute, points, batch)
         rows = own.nonzero().squeeze(1)
         clearance = local.slabs.clearance(points[:, local.slabs.axis], g.rank, width)
-        short = torch.nan_to_num(shortfall(result, clearance, rows, width), nan=math.inf)
+
+        def work():
+            result = compute(points, batch)
+            return result, torch.nan_to_num(shortfall(result, clearance, rows, width), nan=math.inf)
+
+        result, short = _together(g, work)
         if width == math.inf or g.size == 1:
             short = torch.zeros_like(short)  # the whole cloud is there
         need = float(short.max()) if short.numel() else 0.0
@@ -364,8 +369,8 @@ def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int =
 def _certify_rows(g: _Group, local: _Local, compute, shortfall, extract, max_rounds: int = 8) -> List[torch.Tensor]:
     """_halo_rounds for results a row of the slab's points each: the first
     round computes the slab with the first halo, each later one only the rows
-    not yet certified, among the points within 1.25 times the reach they asked
-    for (along the cut axis) of a wider halo. `extract(result, index, rows)`
+    not yet certified, among the points of a wider halo within 1.25 times the
+    reach they asked for (_near_seeds). `extract(result, index, rows)`
     gives the rows' outputs (tensors, row by row; `index` the global index of
     each point computed); returns them for every slab point, in
     `local.points`' order."""
@@ -379,26 +384,29 @@ def _certify_rows(g: _Group, local: _Local, compute, shortfall, extract, max_rou
         points, index, batch, own = local.cloud(width)
         rows = own.nonzero().squeeze(1)
         clearance = local.slabs.clearance(points[:, axis], g.rank, width)
-        if pending is None:
-            seeds, sub = rows, None
-        else:  # the points within reach (along the axis) of a pending seed, the seeds among them
-            x = points[:, axis].double()
-            sub = _within_any(x, x[rows[pending]], reach).nonzero().squeeze(1)
-            seeds = torch.searchsorted(sub, rows[pending])
-            points, index, batch, clearance = points[sub], index[sub], batch[sub], clearance[sub].clone()
-            clearance[seeds] = torch.minimum(clearance[seeds], reach)  # a point left out lies farther
-        result = _together(g, compute, points, batch)
-        short = torch.nan_to_num(shortfall(result, clearance, seeds, width), nan=math.inf)
-        if width == math.inf or g.size == 1:
-            short = torch.zeros_like(short)  # the whole cloud is there
+
+        def work(points=points, index=index, batch=batch, clearance=clearance):
+            if pending is None:
+                seeds = rows
+            else:  # the points within reach of a pending seed, the seeds among them
+                sub, bound = _near_seeds(points, batch, rows[pending], reach, axis)
+                seeds = torch.searchsorted(sub, rows[pending])
+                points, index, batch, clearance = points[sub], index[sub], batch[sub], clearance[sub].clone()
+                clearance[seeds] = torch.minimum(clearance[seeds], bound)  # a point left out lies farther
+            result = compute(points, batch)
+            short = torch.nan_to_num(shortfall(result, clearance, seeds, width), nan=math.inf)
+            if width == math.inf or g.size == 1:
+                short = torch.zeros_like(short)  # the whole cloud is there
+            return short, extract(result, index, seeds), clearance[seeds]
+
+        short, values, seed_clearance = _together(g, work)
         done = short == 0
-        values = extract(result, index, seeds)
         if outputs is None:
             outputs = [v.new_empty((rows.numel(), *v.shape[1:])) for v in values]
         at = torch.arange(rows.numel(), device=g.device) if pending is None else pending
         for out, v in zip(outputs, values):
             out[at[done]] = v[done]
-        pending, reach = at[~done], 1.25 * (short[~done] + clearance[seeds[~done]])
+        pending, reach = at[~done], 1.25 * (short[~done] + seed_clearance[~done])
         need = float(short.max()) if short.numel() else 0.0
         wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
         if wanted == 0.0:
@@ -407,6 +415,30 @@ def _certify_rows(g: _Group, local: _Local, compute, shortfall, extract, max_rou
         if not width < math.inf:
             width = math.inf
     raise AssertionError("unreachable: the last round holds the whole cloud")
+
+
+# _near_seeds lists at most this many (seed, point) pairs by a radius search;
+# beyond, it takes the points near the seeds along the cut axis alone.
+NEAR_PAIRS = 1 << 23
+
+
+def _near_seeds(points: torch.Tensor, batch: torch.Tensor, seeds: torch.Tensor, reach: torch.Tensor, axis: int):
+    """(rows, bound): the sorted rows of `points` within `reach` of one of the
+    rows `seeds` (seeds included), and for each seed how far a point left out
+    lies at least: every point within the largest reach, by a radius search,
+    where that lists few enough pairs (estimated at the mean density of the
+    points' extent); else the points within each seed's reach along `axis`."""
+    r = float(reach.max()) if reach.numel() else 0.0
+    extent = (points.amax(0) - points.amin(0)).double().clamp_min(1e-300) if points.shape[0] else None
+    if 0.0 < r < math.inf and points.shape[0]:
+        volume = float(extent.prod())
+        density = points.shape[0] / volume if volume > 0.0 else math.inf  # flat: the axis alone
+        if seeds.numel() * density * (4.0 / 3.0) * math.pi * min(r, float(extent.max())) ** 3 <= NEAR_PAIRS:
+            found = _plain_radius(points.detach(), r, points[seeds].detach(), batch=batch, query_batch=batch[seeds])
+            rows = torch.unique(torch.cat([found.edge_index[0], seeds]))
+            return rows, torch.full_like(reach, r)
+    x = points[:, axis].double()
+    return _within_any(x, x[seeds], reach).nonzero().squeeze(1), reach
 
 
 def _within_any(x: torch.Tensor, centres: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
