@@ -488,6 +488,17 @@ def _setup(points, box, batch, group, caller: str):
     return g, points, batch, box_arg, _Slabs(g, points, full_box)
 
 
+def _start(caller: str, points, box, batch, group, kwargs):
+    """A cell call's first steps: (on_failure, group, points, batch, boxes,
+    this rank's slab), `kwargs` left with what the plain op takes."""
+    if kwargs.pop("periodic", False):
+        raise NotImplementedError(f"torchvor.distributed.{caller}: periodic boxes are not supported yet")
+    on_failure = kwargs.pop("on_failure", "warn")
+    _check_on_failure(f"distributed.{caller}", on_failure)
+    g, points, batch, box_arg, slabs = _setup(points, box, batch, group, caller)
+    return on_failure, g, points, batch, box_arg, _Local(g, slabs, points, batch)
+
+
 def _slab_cells(g: _Group, local: "_Local", box_arg, batched: bool, kwargs) -> VoronoiCells:
     """The cells of this rank's slab points (the plain voronoi's, on_failure
     "flag"), in the order of `local.points`."""
@@ -522,12 +533,7 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
         the single-process call's results on the whole cloud. The outputs carry
         no gradient (no distributed backward yet).
     """
-    if kwargs.pop("periodic", False):
-        raise NotImplementedError("torchvor.distributed.voronoi: periodic boxes are not supported yet")
-    on_failure = kwargs.pop("on_failure", "warn")
-    _check_on_failure("distributed.voronoi", on_failure)
-    g, points, batch, box_arg, slabs = _setup(points, box, batch, group, "voronoi")
-    local = _Local(g, slabs, points, batch)
+    on_failure, g, points, batch, box_arg, local = _start("voronoi", points, box, batch, group, kwargs)
     cells = _slab_cells(g, local, box_arg, batch is not None, kwargs)
     out = _unpack_cells(*local.send_back(local.index, *_pack_cells(cells, slice(None))))
     _report_failures(out, on_failure, "voronoi")
@@ -551,12 +557,7 @@ def voronoi_graph(points: torch.Tensor, box=None, *, group=None, batch: Optional
         mean of what its two cells computed, so a cell counts as computed when
         its neighbours are too). No gradient.
     """
-    if kwargs.pop("periodic", False):
-        raise NotImplementedError("torchvor.distributed.voronoi_graph: periodic boxes are not supported yet")
-    on_failure = kwargs.pop("on_failure", "warn")
-    _check_on_failure("distributed.voronoi_graph", on_failure)
-    g, points, batch, box_arg, slabs = _setup(points, box, batch, group, "voronoi_graph")
-    local = _Local(g, slabs, points, batch)
+    on_failure, g, points, batch, box_arg, local = _start("voronoi_graph", points, box, batch, group, kwargs)
 
     def compute(p, b):
         return _plain_graph(p, box_arg, batch=b if batch is not None else None, on_failure="flag", **kwargs)
