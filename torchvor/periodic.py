@@ -600,22 +600,19 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
 
 def clearance(padded: Padded, pbox: PeriodicBox, batch: Optional[torch.Tensor], margin: torch.Tensor,
               reach: Optional[torch.Tensor] = None, rows: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """(N,) float64: the distance from each point's own cell seed (its row
-    `position`) to the nearest face of the padded box along a periodic axis
-    that `margin` pads by less than a period (inf where there is none: no
-    image that could cut a cell is left out). Every seed clears the margin
-    (pad); with `reach` (N,), the distance is computed only where the reach
-    passes that, and is the margin elsewhere. With `rows`: (R,) at those
-    points only."""
+    """The distance from each point's own cell seed (its row `position`) to
+    the nearest face of the padded box along a periodic axis that `margin`
+    pads by less than a period (inf where there is none: no image that could
+    cut a cell is left out), float64: (R,) at the points `rows`, or (N,) at
+    every point given each one's `reach`. Every seed clears the margin (pad),
+    so the distance is computed only where the reach passes that, and is the
+    margin elsewhere."""
     n = padded.position.numel()
     margins = axis_margins(pbox, margin).double()
     short_axes = pbox.mask & (margins < pbox.period.double())
     if rows is not None:
         within = torch.empty(rows.numel(), dtype=torch.float64, device=margin.device)
         at = torch.arange(rows.numel(), device=margin.device)
-    elif reach is None:
-        rows = at = torch.arange(n, device=margin.device)
-        within = torch.empty(n, dtype=torch.float64, device=margin.device)
     else:
         least = torch.where(short_axes, margins, torch.full_like(margins, math.inf)).amin(1)
         within = _per_point(least, batch, n).clone()
