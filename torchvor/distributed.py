@@ -280,29 +280,35 @@ class _Local:
         else:
             self.points = points
 
-    def owner_rank(self, index: torch.Tensor) -> torch.Tensor:
-        """(N,) int64: the rank that owns each global index."""
-        g = self.g
-        starts = torch.tensor([sum(g.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
-        return torch.searchsorted(starts, index.contiguous(), right=True)
-
     def send_edges(self, edges: torch.Tensor, values: torch.Tensor):
         """Edges (E, 2) of global (neighbour, cell) and their `values` sent to
         the rank that owns each cell."""
-        return tuple(self.g.exchange(self.owner_rank(edges[:, 1]), [edges, values]))
+        return tuple(self.g.exchange(_owner_rank(self.g, self.g.counts, edges[:, 1]), [edges, values]))
 
     def send_back(self, index: torch.Tensor, *values: torch.Tensor) -> List[torch.Tensor]:
         """Each of `values`, rows of this slab's points (global `index`), sent to
         the ranks that own them: this rank's rows, in its input order."""
-        g = self.g
-        got_index, *got = g.exchange(self.owner_rank(index), [index, *values])
-        rows = got_index - g.offset
-        out = []
-        for value, received in zip(values, got):
-            mine = value.new_empty((g.counts[g.rank], *value.shape[1:]))
-            mine[rows] = received
-            out.append(mine)
-        return out
+        return _send_back(self.g, self.g.counts, index, values)
+
+
+def _owner_rank(g: _Group, counts: List[int], index: torch.Tensor) -> torch.Tensor:
+    """(N,) int64: the rank that owns each global index, the ranks owning
+    `counts` rows in rank order."""
+    starts = torch.tensor([sum(counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
+    return torch.searchsorted(starts, index.contiguous(), right=True)
+
+
+def _send_back(g: _Group, counts: List[int], index: torch.Tensor, values) -> List[torch.Tensor]:
+    """Each of `values`, rows of global `index` (rows owned by the ranks as
+    `counts` says), sent to their owners: this rank's rows, in its order."""
+    got_index, *got = g.exchange(_owner_rank(g, counts, index), [index, *values])
+    rows = got_index - sum(counts[: g.rank])
+    out = []
+    for value, received in zip(values, got):
+        mine = value.new_empty((counts[g.rank], *value.shape[1:]))
+        mine[rows] = received
+        out.append(mine)
+    return out
 
 
 def _together(g: _Group, fn, *args):
@@ -611,7 +617,7 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
     Returns:
         This rank's relaxed points (a new tensor), or ``(points, history)``.
     """
-    from .lloyd import LloydStep, _progress_line
+    from .lloyd import LloydStep, _progress_line, neighbors_quantile
 
     if not isinstance(iters, int) or isinstance(iters, bool) or iters < 0:
         raise ValueError(f"torchvor.distributed.lloyd: iters must be a non-negative int, got {iters!r}")
@@ -629,10 +635,7 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
         cells = _slab_cells(g, local, box_arg, batch is not None, {"k": k})
         computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
         moved = torch.where(computed.unsqueeze(1), cells.centroid, local.points)
-        needed = 0
-        if bool(computed.any()):
-            counts = cells.neighbors_needed[computed].double()
-            needed = int(math.ceil(float(torch.quantile(counts[:: max(1, counts.numel() // 65536)], 0.99))))
+        needed = neighbors_quantile(cells.neighbors_needed[computed])
         diagonal = edges[local.batch] if batch is not None else edges[0].expand(moved.shape[0])
         moves = ((moved - local.points).double().norm(dim=1) / diagonal).max() if moved.shape[0] else \
             torch.zeros((), dtype=torch.float64, device=g.device)
@@ -760,15 +763,7 @@ class _Queries:
 
     def send_back(self, *values: torch.Tensor) -> List[torch.Tensor]:
         """Each of `values`, rows of the slab's queries, sent to the ranks that asked them."""
-        g = self.g
-        starts = torch.tensor([sum(self.counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
-        got_index, *got = g.exchange(torch.searchsorted(starts, self.index, right=True), [self.index, *values])
-        out = []
-        for value, received in zip(values, got):
-            mine = value.new_empty((self.counts[g.rank], *value.shape[1:]))
-            mine[got_index - self.offset] = received
-            out.append(mine)
-        return out
+        return _send_back(self.g, self.counts, self.index, values)
 
 
 def _raise_if(problem: Optional[str]) -> None:

@@ -226,11 +226,17 @@ def _periodic_step(current: torch.Tensor, pbox, batch: Optional[torch.Tensor], k
     edges = pbox.box[:, 1] - pbox.box[:, 0]
     diagonal = (edges.norm(dim=1)[batch] if batch is not None else edges[0].norm().expand(n)).double()
     max_displacement = float(((target - current).double().norm(dim=1) / diagonal).max()) if n else 0.0
-    needed = 0
-    if bool(computed.any()):
-        counts = cells.neighbors_needed[computed].double()
-        needed = int(math.ceil(float(torch.quantile(counts[:: max(1, counts.numel() // QUANTILE_SAMPLE)], K_QUANTILE))))
+    needed = neighbors_quantile(cells.neighbors_needed[computed])
     return moved, cells, torch.arange(n, device=current.device), energy, max_displacement, k or 0, failed, needed
+
+
+def neighbors_quantile(neighbors_needed: torch.Tensor) -> int:
+    """The K_QUANTILE of the computed cells' neighbour counts (of a strided
+    sample of QUANTILE_SAMPLE beyond that many), rounded up; 0 for none."""
+    if neighbors_needed.numel() == 0:
+        return 0
+    counts = neighbors_needed.double()
+    return int(math.ceil(float(torch.quantile(counts[:: max(1, counts.numel() // QUANTILE_SAMPLE)], K_QUANTILE))))
 
 
 def _step(current: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor],

@@ -229,7 +229,7 @@ def pad(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
             mine = (shifts[which] == own_shift[row]).all(1).nonzero().squeeze(1)
             moved = candidates[row[mine]]
             position[moved] = n + mine
-    images = points[source[n:]] + shift[n:].to(points.dtype) * _per_point(pbox.period, batch, n)[source[n:]]
+    images = points[source[n:]] + step[row, which]  # the images above, now with the points' gradient
     padded = torch.cat([points, images])
     padded_batch = None
     if batch is not None:
