@@ -334,6 +334,8 @@ class Report:
     oracle_notes: Dict[str, int] = field(default_factory=dict)
     slowest: List[Dict] = field(default_factory=list)  # the SLOWEST_CASES slowest cases, slowest first
     seconds: float = 0.0
+    phase_seconds: Dict[str, float] = field(default_factory=dict)  # where the time goes (Campaign.timed)
+    kind_seconds: Dict[str, float] = field(default_factory=dict)  # each kind's cases, checks included
 
     def add(self, kind: str, name: str, value: int = 1) -> None:
         self.counts[name] += value
@@ -345,7 +347,8 @@ class Report:
     def as_dict(self) -> Dict:
         return {"settings": self.settings, "counts": self.counts, "per_kind": self.per_kind,
                 "oracle_skip_reasons": self.skip_reasons, "oracle_notes": self.oracle_notes,
-                "slowest": self.slowest, "seconds": self.seconds,
+                "slowest": self.slowest, "seconds": self.seconds, "phase_seconds": self.phase_seconds,
+                "kind_seconds": self.kind_seconds,
                 "problems": [vars(p) for p in self.problems]}
 
 
@@ -411,6 +414,16 @@ class Campaign:
                     "sample": sample, "suspects": suspects, "kinds": self.kinds}
         self.report = Report(settings)
 
+    @contextlib.contextmanager
+    def timed(self, phase: str):
+        """Adds the time spent inside to the report's phase_seconds[phase]."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            seconds = self.report.phase_seconds
+            seconds[phase] = seconds.get(phase, 0.0) + time.perf_counter() - t0
+
     def log(self, text: str) -> None:
         if self.out is not None:
             print(text, file=self.out, flush=True)
@@ -470,9 +483,10 @@ class Campaign:
 
     def run_case(self, index: int) -> None:
         """One case under every cell implementation asked for."""
-        case = make_case(self.seed, index, max_n=self.max_n, dtype=self.dtype, kinds=self.kinds)
-        self.report.add(case.kind, "cases")
         t0 = time.perf_counter()
+        with self.timed("make_case"):
+            case = make_case(self.seed, index, max_n=self.max_n, dtype=self.dtype, kinds=self.kinds)
+        self.report.add(case.kind, "cases")
         shared = {}  # what the runs of a case share: its cKDTrees by cloud, its exact copies, its float64 cells
         before = {name: self.report.counts[name] for name in COUNTERS}
         for impl in self.impls:
@@ -480,10 +494,13 @@ class Campaign:
             self.run_one(case, impl, shared)
         if 0 < case.n <= self.graph_max_n and not case.expect_error:
             self.current_impl = "graph"
-            self.check_graph(case, shared)
+            with self.timed("graph"):
+                self.check_graph(case, shared)
             self.current_impl = "periodic"
-            fuzz_periodic.check_periodic(self, case, shared)
+            with self.timed("periodic"):
+                fuzz_periodic.check_periodic(self, case, shared)
         seconds = time.perf_counter() - t0
+        self.report.kind_seconds[case.kind] = self.report.kind_seconds.get(case.kind, 0.0) + seconds
         self.report.slowest.append({"seconds": round(seconds, 2), "case": case.describe(),
                                     "replay": replay_command(case, self.report.settings)})
         self.report.slowest.sort(key=lambda entry: -entry["seconds"])
@@ -499,9 +516,11 @@ class Campaign:
         self.report.add(kind, "runs")
         try:
             points, box, batch = case.arguments(self.device)
-            with _cells_impl(impl), warnings.catch_warnings():
+            with _cells_impl(impl), warnings.catch_warnings(), self.timed("voronoi"):
                 warnings.simplefilter("ignore")
                 cells = torchvor.voronoi(points, box, batch=batch, on_failure="flag")
+                if self.device.type == "cuda":
+                    torch.cuda.synchronize()
         except Exception as error:  # noqa: BLE001 - every exception is a finding
             if case.expect_error and isinstance(error, ValueError) and re.search(case.expect_error, str(error)):
                 self.report.add(kind, "expected_errors")
@@ -517,12 +536,11 @@ class Campaign:
                          f"matching {case.expect_error!r}")
             return
         self.report.add(kind, "cells", case.n)
-        if self.device.type == "cuda":
-            torch.cuda.synchronize()
         cpu = torchvor.VoronoiCells(*(t.cpu() for t in cells))
         self.check_cells(case, impl, cpu, shared)
         if self.device.type == "cuda":
-            self.compare_with_cpu(case, impl, cpu)
+            with self.timed("cpu_compare"):
+                self.compare_with_cpu(case, impl, cpu)
 
     def check_cells(self, case: Case, impl: str, cells, shared: Dict) -> None:
         """Statuses, finite outputs, duplicates, volume sums, and the oracle sample."""
@@ -546,7 +564,8 @@ class Campaign:
                          f"non-finite or negative outputs: cells {bad[:10].tolist()}", cell=int(bad[0]),
                          count=len(bad))
         if "exact_copies" not in shared:  # the case's, for each of its runs
-            shared["exact_copies"] = _exact_copies(case)
+            with self.timed("exact_copies"):
+                shared["exact_copies"] = _exact_copies(case)
         bad = _duplicate_mismatch(shared["exact_copies"], status)
         if len(bad):
             self.report.add(kind, "silently_wrong", len(bad))
@@ -564,8 +583,10 @@ class Campaign:
                 self.problem(case, impl, "wrong_volume_sum",
                              f"cloud {cloud}: the volumes sum to {total!r}, its box's volume is {box_volume!r} "
                              f"(rel {abs(total / box_volume - 1):.2e}, tolerance {SUM_RTOL[dtype]:.0e})")
-        suspects = self.float32_suspects(case, cells, ok & finite, shared) if dtype == torch.float32 else []
-        self.check_sample(case, impl, cells, ok & finite, shared, suspects)
+        with self.timed("float64_cells"):
+            suspects = self.float32_suspects(case, cells, ok & finite, shared) if dtype == torch.float32 else []
+        with self.timed("oracle"):
+            self.check_sample(case, impl, cells, ok & finite, shared, suspects)
 
     def float32_suspects(self, case: Case, cells, ok: np.ndarray, shared: Dict) -> List[int]:
         """The `suspects` SUCCESS cells of a float32 run whose volumes differ
@@ -697,6 +718,11 @@ def summary(report: Report) -> str:
         lines.append(f"  oracle skipped {count} x: {reason}")
     for note, count in sorted(report.oracle_notes.items(), key=lambda kv: -kv[1]):
         lines.append(f"  oracle: {count} x {note}")
+    if report.phase_seconds:
+        lines.append("  seconds by phase: " + ", ".join(f"{name} {value:.0f}" for name, value in
+                                                         sorted(report.phase_seconds.items(), key=lambda kv: -kv[1])))
+        lines.append("  seconds by kind: " + ", ".join(f"{name} {value:.0f}" for name, value in
+                                                        sorted(report.kind_seconds.items(), key=lambda kv: -kv[1])))
     for entry in report.slowest:
         lines.append(f"  slowest: {entry['seconds']:.1f} s {entry['case']}\n      replay: {entry['replay']}")
     for p in report.problems:
@@ -721,6 +747,10 @@ def merge_reports(reports: Sequence[Dict]) -> Report:
             for key, value in theirs.items():
                 ours[key] = ours.get(key, 0) + value
         merged.slowest += part["slowest"]
+        for ours, theirs in ((merged.phase_seconds, part.get("phase_seconds", {})),
+                             (merged.kind_seconds, part.get("kind_seconds", {}))):
+            for key, value in theirs.items():
+                ours[key] = ours.get(key, 0.0) + value
         merged.problems += [Problem(**p) for p in part["problems"]]
         merged.seconds = max(merged.seconds, part["seconds"])
     merged.slowest = sorted(merged.slowest, key=lambda entry: -entry["seconds"])[:SLOWEST_CASES]
