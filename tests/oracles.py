@@ -8,6 +8,7 @@ cells can also be computed in exact rational arithmetic (exact_cell_oracle).
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -256,10 +257,16 @@ class CellOracle:
     area: float = 0.0  # surface area of the cell
     # face areas and centroids (absolute), by the point across (>= 0) or the wall (-1 - w)
     faces: Optional[dict] = None
+    # the largest |vertex - seed|, from the vertices relative to the seed: the absolute
+    # vertices are rounded to the coordinates' spacing, as large as a cell of points a few
+    # ulps apart (None: from the absolute vertices)
+    relative_radius: Optional[float] = None
 
     @property
     def radius(self) -> float:
         """Largest distance from the seed to a vertex of the cell."""
+        if self.relative_radius is not None:
+            return self.relative_radius
         if len(self.vertices) == 0:
             return 0.0
         return float(np.sqrt(((self.vertices - self.seed) ** 2).sum(1).max()))
@@ -413,7 +420,8 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
             key = int(owner[h]) if owner[h] >= 0 else wall_of_plane[int(h)]
             faces[key] = (a, (tri_area[on, None] * tri[on].mean(1)).sum(0) / a + seed)
     return CellOracle(volume, centroid + seed, float(second.sum()), verts + seed,
-                      np.array(facets, dtype=np.int64), seed, area=area, faces=faces)
+                      np.array(facets, dtype=np.int64), seed, area=area, faces=faces,
+                      relative_radius=float(np.sqrt((verts ** 2).sum(1).max())) if len(verts) else 0.0)
 
 
 def voronoi_oracle(points, box, cells: Optional[Sequence[int]] = None):
@@ -573,11 +581,13 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
             key = chosen[t - 6] if t >= 6 else -1 - (2 * (t // 2) + (1 - t % 2))
             faces[key] = (0.5 * face_area2, face_moment / face_area2 + pts[i])
     seed_np = pts[i]
-    verts = np.array([[float(x) for x in v] for v in vertices]) + seed_np
+    relative = np.array([[float(x) for x in v] for v in vertices])
+    verts = relative + seed_np
+    radius = max((math.sqrt(float(_dot(v, v))) for v in vertices), default=0.0)  # exact |v|^2, one rounding
     centroid = np.array([float(first[a] / volume) for a in range(3)]) + seed_np
     facets = sorted(chosen[t - 6] for t, ring in on_plane.items() if len(ring) >= 3 and t >= 6)
     return CellOracle(float(volume), centroid, float(second), verts, np.array(facets, dtype=np.int64),
-                      seed_np.copy(), area=0.5 * area2_total, faces=faces)
+                      seed_np.copy(), area=0.5 * area2_total, faces=faces, relative_radius=radius)
 
 
 # ----------------------------------------------------------------------------- periodic boxes
