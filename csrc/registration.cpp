@@ -20,10 +20,12 @@ TORCH_LIBRARY(torchvor, m) {
   // number of nearest neighbours each cell needed (N,) int32, and radius (N,):
   // the largest distance from the point to a vertex of its cell, rounded up
   // to float32 (NaN for a failed cell, 0 for a duplicate). k: first-pass
-  // neighbours; None measures it on a pilot sample of cells.
+  // neighbours; None measures it on a pilot sample of cells. rows (M,) int64:
+  // only those cells are computed, the others are NOT_COMPUTED with NaN outputs
+  // (exact copies are DUPLICATE in any case).
   m.def(
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
-      "int memory_budget=1073741824) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "int memory_budget=1073741824, Tensor? rows=None) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors_needed, Tensor radius)");
   // The cells of voronoi_cells and their faces: edge_index (2, E) int64,
   // the neighbour j (row 0) across a face of cell i (row 1), sorted by i

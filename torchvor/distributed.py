@@ -38,7 +38,7 @@ import torch.distributed as dist
 
 from .graph import VoronoiGraph, voronoi_graph as _plain_graph
 from .ops import KNN, CellStatus, VoronoiCells, _check_on_failure, as_box
-from .ops import knn as _plain_knn, voronoi as _plain_voronoi
+from .ops import _voronoi_rows, knn as _plain_knn
 from .radius import radius as _plain_radius
 
 __all__ = ["knn", "lloyd", "voronoi", "voronoi_graph"]
@@ -376,7 +376,8 @@ def _certify_rows(g: _Group, local: _Local, compute, shortfall, extract, max_rou
     """_halo_rounds for results a row of the slab's points each: the first
     round computes the slab with the first halo, each later one only the rows
     not yet certified, among the points of a wider halo within 1.25 times the
-    reach they asked for (_near_seeds). `extract(result, index, rows)`
+    reach they asked for (_near_seeds). `compute(points, batch, rows)` may
+    compute the rows' results alone; `extract(result, index, rows)`
     gives the rows' outputs (tensors, row by row; `index` the global index of
     each point computed); returns them for every slab point, in
     `local.points`' order."""
@@ -399,7 +400,7 @@ def _certify_rows(g: _Group, local: _Local, compute, shortfall, extract, max_rou
                 seeds = torch.searchsorted(sub, rows[pending])
                 points, index, batch, clearance = points[sub], index[sub], batch[sub], clearance[sub].clone()
                 clearance[seeds] = torch.minimum(clearance[seeds], bound)  # a point left out lies farther
-            result = compute(points, batch)
+            result = compute(points, batch, seeds)
             short = torch.nan_to_num(shortfall(result, clearance, seeds, width), nan=math.inf)
             if width == math.inf or g.size == 1:
                 short = torch.zeros_like(short)  # the whole cloud is there
@@ -507,16 +508,17 @@ def _start(caller: str, points, box, batch, group, kwargs):
 
 def _slab_cells(g: _Group, local: "_Local", box_arg, batched: bool, kwargs) -> VoronoiCells:
     """The cells of this rank's slab points (the plain voronoi's, on_failure
-    "flag"), in the order of `local.points`."""
+    "flag"), in the order of `local.points`. The halo's cells are not
+    computed: its points only bound the slab's."""
 
-    def compute(p, b):
-        return _plain_voronoi(p, box_arg, batch=b if batched else None, on_failure="flag", **kwargs)
+    def compute(p, b, rows):
+        return _voronoi_rows(p, box_arg, rows, b if batched else None, **kwargs)
 
-    def shortfall(cells, clearance, rows, width):
-        return _cell_shortfall(cells, clearance)[rows]
+    def shortfall(cells, clearance, rows, width):  # cells: the rows' own
+        return _cell_shortfall(cells, clearance[rows])
 
     def extract(cells, index, rows):
-        return _pack_cells(cells, rows)
+        return _pack_cells(cells, slice(None))
 
     return _unpack_cells(*_certify_rows(g, local, compute, shortfall, extract))
 
@@ -711,7 +713,7 @@ def knn(points: torch.Tensor, k: int, queries: Optional[torch.Tensor] = None, *,
     skip = queries is None and (exclude_self is None or bool(exclude_self))
     asked = None if queries is None else _Queries(g, slabs, points, batch, queries.detach(), query_batch)
 
-    def compute(p, b):
+    def compute(p, b, rows=None):  # every row's neighbours (they are cheap beside the exchanges)
         if asked is None:
             return _plain_knn(p, k, batch=b if batch is not None else None, exclude_self=skip)
         return _plain_knn(p, k, asked.points, batch=b if batch is not None else None,

@@ -161,7 +161,7 @@ torch.library.register_autograd("torchvor::voronoi_graph", _no_backward, setup_c
 # the points it bisects, the walls stay. The backward recomputes the cells'
 # faces with their moments (the same cells: the passes are deterministic).
 def _cells_setup_context(ctx, inputs, output) -> None:
-    points, box, batch, k, memory_budget = inputs
+    points, box, batch, k, memory_budget, *_rows = inputs  # rows: the cells not computed have no gradient to give
     volume, centroid, _second_moment, status, neighbors_needed, radius = output
     ctx.mark_non_differentiable(status, neighbors_needed, radius)
     ctx.save_for_backward(points, box, batch, volume, centroid)
@@ -171,12 +171,12 @@ def _cells_setup_context(ctx, inputs, output) -> None:
 def _cells_backward(ctx, grad_volume, grad_centroid, grad_second_moment, _grad_status, _grad_neighbors, _grad_radius):
     points, box, batch, volume, centroid = ctx.saved_tensors
     if not ctx.needs_input_grad[0]:
-        return None, None, None, None, None
+        return None, None, None, None, None, None
     faces = torch.ops.torchvor.voronoi_graph.default(points.detach(), box, batch, ctx.k, ctx.memory_budget, True)
     edge_index, area, face_centroid, _wall_area, moments = faces[6:]
     grad = _cell_gradients(points.detach(), volume.detach(), centroid.detach(), edge_index, area, face_centroid,
                            moments, grad_volume, grad_centroid, grad_second_moment)
-    return grad.to(points.dtype), None, None, None, None
+    return grad.to(points.dtype), None, None, None, None, None
 
 
 def _cell_gradients(points, volume, centroid, edge_index, area, face_centroid, moments,

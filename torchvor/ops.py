@@ -361,6 +361,23 @@ def _report_failures(caller: str, cells: VoronoiCells, on_failure: str) -> None:
         warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
+def _voronoi_rows(points: torch.Tensor, box: torch.Tensor, rows: torch.Tensor, batch: Optional[torch.Tensor] = None,
+                  k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> VoronoiCells:
+    """The cells of ``points[rows]`` among all of ``points`` (the others are
+    not computed), for the periodic and distributed calls, whose padding and
+    halo points only bound cells.
+
+    ``box`` is a (B, 2, 3) tensor (:func:`as_box`); ``rows`` (M,) int64.
+    Failed cells are flagged, never raised or warned about.
+
+    Returns:
+        :class:`VoronoiCells` of M rows, row m the cell of ``points[rows[m]]``;
+        differentiable as :func:`voronoi`'s.
+    """
+    outputs = torch.ops.torchvor.voronoi_cells.default(points, box, batch, k, memory_budget, rows)
+    return VoronoiCells(*(t.index_select(0, rows) for t in outputs))
+
+
 def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
                            k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET):
     """The cells of :func:`voronoi` in the op's grid order, for :func:`torchvor.lloyd`.
@@ -465,7 +482,7 @@ for _op in ("voronoi_cells_grid_order", "lloyd_step"):
 
 
 @torch.library.register_fake("torchvor::voronoi_cells")
-def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET):
+def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET, rows=None):
     n = points.shape[0]
     return (
         points.new_empty((n,)),

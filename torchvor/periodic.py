@@ -547,7 +547,7 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> Pe
 
 def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtype: torch.dtype) -> PeriodicCells:
     from .graph import voronoi_graph as _plain_graph
-    from .ops import voronoi as _plain_voronoi
+    from .ops import _voronoi_rows
 
     exact_only = dtype == torch.float32
     given_box = pbox
@@ -568,12 +568,10 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
         if graph:
             result = _plain_graph(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
                                   memory_budget=memory_budget)
-            everything = result.cells
-        else:
+            own = VoronoiCells(*(t.index_select(0, padded.position) for t in result.cells))
+        else:  # the images only bound the points' cells: theirs are not computed
             result = None
-            everything = _plain_voronoi(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
-                                        memory_budget=memory_budget)
-        own = VoronoiCells(*(t.index_select(0, padded.position) for t in everything))
+            own = _voronoi_rows(padded.points, padded.box, padded.position, padded.batch, k, memory_budget)
         seed = padded.points.detach().index_select(0, padded.position)  # where each point's cell was computed
         moved = [padded.moved]
         within = clearance(padded, pbox, batch, margin, _reach(own))
@@ -692,7 +690,7 @@ def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, marg
     computed; and whether the padding stayed one-sided (it turns two-sided
     where an image would round). `points`: the given float32 points whose
     images must be exact (images_exact), or None."""
-    from .ops import voronoi as _plain_voronoi
+    from .ops import _voronoi_rows
     from .radius import radius as _plain_radius
 
     u = short.nonzero().squeeze(1)
@@ -707,10 +705,10 @@ def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, marg
     found = _plain_radius(wider.points.detach(), r, wider.points[seeds].detach(), batch=wider.batch,
                           query_batch=batch[u] if batch is not None else None)
     keep = torch.unique(torch.cat([found.edge_index[0], seeds]))  # sorted: batch order kept
-    sub = _plain_voronoi(wider.points[keep], wider.box, batch=wider.batch[keep] if batch is not None else None,
-                         k=k, on_failure="flag", memory_budget=memory_budget)
     rows = torch.searchsorted(keep, seeds)
-    own = VoronoiCells(*(t.index_copy(0, u, s[rows]) for t, s in zip(own, sub)))
+    sub = _voronoi_rows(wider.points[keep], wider.box, rows, wider.batch[keep] if batch is not None else None, k,
+                        memory_budget)
+    own = VoronoiCells(*(t.index_copy(0, u, s) for t, s in zip(own, sub)))
     reach = torch.minimum(clearance(wider, pbox, batch, margin, rows=u), torch.full_like(within[u], r))
     return own, within.index_copy(0, u, reach), seed.index_copy(0, u, wider.points.detach()[seeds]), one_sided
 

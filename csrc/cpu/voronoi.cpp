@@ -17,14 +17,15 @@ namespace cpu {
 
 ops::CallerOutputs voronoi_cells_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
-    c10::optional<int64_t> k, int64_t memory_budget) {
-  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, false, {}, nullptr).cells;
+    c10::optional<int64_t> k, int64_t memory_budget, const c10::optional<at::Tensor>& rows) {
+  return ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, false, {}, nullptr, rows).cells;
 }
 
 ops::GridOrderOutputs voronoi_cells_grid_order_cpu(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
     c10::optional<int64_t> k, int64_t memory_budget) {
-  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true, {}, nullptr);
+  const ops::VoronoiOutputs out = ops::voronoi_forward<CpuExec>(points, box, batch, k, memory_budget, true, {}, nullptr,
+                                                                  c10::nullopt);
   return std::tuple_cat(out.cells, std::make_tuple(out.order));
 }
 

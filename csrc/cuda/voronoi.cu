@@ -20,18 +20,19 @@ namespace cuda {
 
 ops::VoronoiOutputs voronoi_forward_cuda(const at::Tensor& points, const at::Tensor& box,
                                          const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
-                                         int64_t memory_budget, bool grid_order) {
+                                         int64_t memory_budget, bool grid_order,
+                                         const c10::optional<at::Tensor>& rows = c10::nullopt) {
   // Any CUDA argument routes the call here; a CPU `points` then fails the
   // device check with a clear message instead of a guard error.
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order, {}, nullptr);
+  return ops::voronoi_forward<CudaExec>(points, box, batch, k, memory_budget, grid_order, {}, nullptr, rows);
 }
 
 ops::CallerOutputs voronoi_cells_cuda(
     const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,
-    c10::optional<int64_t> k, int64_t memory_budget) {
-  return voronoi_forward_cuda(points, box, batch, k, memory_budget, false).cells;
+    c10::optional<int64_t> k, int64_t memory_budget, const c10::optional<at::Tensor>& rows) {
+  return voronoi_forward_cuda(points, box, batch, k, memory_budget, false, rows).cells;
 }
 
 ops::GridOrderOutputs voronoi_cells_grid_order_cuda(

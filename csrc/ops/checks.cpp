@@ -130,6 +130,18 @@ int64_t check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
   return batches;
 }
 
+void check_cell_rows(const c10::optional<at::Tensor>& rows, const at::Tensor& points, ValueChecks& values) {
+  if (!rows.has_value()) return;
+  const at::Tensor& r = *rows;
+  TORCH_CHECK_TYPE(r.scalar_type() == at::kLong, "torchvor: rows must be int64, got ", c10::toString(r.scalar_type()));
+  TORCH_CHECK_VALUE(r.dim() == 1, "torchvor: rows must have shape (M,), got ", shape_string(r));
+  check_same_device(points, "points", r, "rows");
+  if (r.size(0) > 0) {
+    values.add(((r >= 0) & (r < points.size(0))).all(),
+               "torchvor: rows must be indices of points, in [0, " + std::to_string(points.size(0)) + ")");
+  }
+}
+
 void check_voronoi_values(const at::Tensor& bounds, const double* box, int64_t num_boxes) {
   // The points first: with box=None the box is their bounding box, and a
   // NaN point would otherwise be reported as a NaN box.

@@ -47,6 +47,10 @@ int64_t check_voronoi_inputs(const at::Tensor& points, const at::Tensor& box,
                              const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
                              int64_t memory_budget);
 
+// Validates voronoi_cells' `rows` (the cells to compute, int64 (M,) on the
+// points' device) but its values, which go to `values`: each in [0, N).
+void check_cell_rows(const c10::optional<at::Tensor>& rows, const at::Tensor& points, ValueChecks& values);
+
 // The points are finite (non-finite bounds), the box of every cloud that has
 // points is finite with lo < hi on each axis, and every point lies inside
 // its box, from what the host read: `bounds` (B, 7) rows of the points'

@@ -128,7 +128,8 @@ LloydStepOutputs lloyd_step_forward(const at::Tensor& points_in, const at::Tenso
     }
     summary_read = std::make_unique<typename Exec::HostRead>(summary);
   };
-  const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, true, launch_tail, nullptr);
+  const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, true, launch_tail, nullptr,
+                                                     c10::nullopt);
   const at::Tensor read = summary_read->wait();
   // The first pass's k joins the measures on the host (the pilot's choice,
   // where k was None: torchvor.lloyd's history reports it).

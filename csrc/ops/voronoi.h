@@ -39,13 +39,15 @@ struct Prepared {
 // of the points, already read.
 // With `faces` (voronoi_graph), the passes after the pilot also write the
 // cells' faces there (FaceTensors), and the outputs carry the face counts
-// and the grid order.
+// and the grid order. With `rows`, only the cells of those rows are
+// computed (the pilot's too); the others stay NOT_COMPUTED with NaN
+// outputs, but exact copies, which are DUPLICATE in any case.
 template <typename Exec, typename io_t>
 VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
                               const Prepared& prepared, c10::optional<int64_t> k_in, int64_t memory_budget,
                               bool grid_order, const LaunchOnOutputs& on_outputs, const Options& options,
-                              const FaceTensors* faces = nullptr) {
+                              const FaceTensors* faces = nullptr, const c10::optional<at::Tensor>& rows = c10::nullopt) {
   const int64_t n = points.size(0);
   const int64_t num_boxes = box.size(0);
   PositionOutputs out = poisoned_outputs<io_t>(prepared.status, points.options());
@@ -91,6 +93,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, out.row_of_position))
                                    : c10::nullopt;
     positions = prepared.positions.slice(0, 0, kept);
+    if (rows.has_value()) {  // the asked rows' positions, in grid order
+      const at::Tensor asked = at::zeros({n}, rows->options().dtype(at::kBool)).index_fill_(0, *rows, true);
+      positions = asked.index_select(0, out.row_of_position.slice(0, 0, kept)).nonzero().squeeze(1).to(at::kInt);
+    }
     return kept;
   };
   // The grid at `points_per_cell` of the points it holds: when copies are
@@ -101,6 +107,14 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     if (kept < n) {
       Exec::for_each(n - kept, DuplicateRecordFunctor<io_t>{work_points.data_ptr<io_t>(), kept,
                                                             out.status.data_ptr<int8_t>(), out.data<io_t>()});
+    }
+    if (rows.has_value() && kept > 0) {
+      // The cells not asked for are written by no pass: their records say so
+      // from the start (after a rebuild too, where the pilot's cells,
+      // numbered in the old order, may sit at positions not asked for now).
+      out.status.slice(0, 0, kept).fill_(int(core::kNotComputed));
+      Exec::for_each(kept, PoisonUnwrittenFunctor<io_t>{prepared.positions.data_ptr<int32_t>(),
+                                                        out.status.data_ptr<int8_t>(), out.data<io_t>()});
     }
   };
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass, c10::optional<double> neighbor_spread) {
@@ -121,6 +135,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   const double scale = options.points_per_cell_scale;
   const double first_points_per_cell = points_per_cell_for(k_in.value_or(0), scale);
   sort_into_grid(first_points_per_cell);
+  if (positions.size(0) == 0) {  // no cell asked for (rows), or only copies
+    if (!grid_order) out.position_of_row = invert_order<Exec>(out.row_of_position, options.testing.scatter_bytes);
+    return finished();
+  }
   int64_t k = k_in.value_or(0);
   c10::optional<double> neighbor_spread;  // from the pilot, where one runs
   if (!k_in.has_value()) {
@@ -167,7 +185,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     // does not depend on the order of a pass.
     const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
     const at::Tensor words = at::zeros({4}, pending.options());
-    scan(pending, pending.is_same(positions), failed_cells, words.data_ptr<int32_t>(), nullptr);
+    scan(pending, !rows.has_value() && pending.is_same(positions), failed_cells, words.data_ptr<int32_t>(), nullptr);
     // After the first pass, the retry it most likely needs runs before the
     // host reads the words: on the failed cells with more neighbours, if
     // they fit its capacity (core::DeviceCount), its own outcome in words 2
@@ -266,8 +284,9 @@ template <typename Exec>
 VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
                                const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
                                int64_t memory_budget, bool grid_order, const LaunchOnOutputs& on_outputs,
-                               GraphFaces* graph) {
+                               GraphFaces* graph, const c10::optional<at::Tensor>& rows) {
   const int64_t clouds = check_voronoi_inputs(points_in, box_in, batch_in, k_in, memory_budget);
+  TORCH_INTERNAL_ASSERT(!rows.has_value() || (graph == nullptr && !grid_order), "rows: voronoi_cells only");
   const Options options = Options::from_environment();
   // One box for several clouds: each cloud gets its copy.
   const at::Tensor box = (box_in.size(0) == 1 && clouds > 1 ? box_in.expand({clouds, 2, 3}) : box_in).contiguous();
@@ -281,6 +300,7 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   // checked separately.
   ValueChecks values;
   if (batch.has_value()) values.finite(points, "points");
+  check_cell_rows(rows, points, values);
   std::vector<at::Tensor> to_read = values.conditions();
   to_read.push_back(box);
   std::vector<double> read;
@@ -297,7 +317,7 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_cells", [&] {
     if (graph == nullptr) {
       result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, grid_order,
-                                              on_outputs, options);
+                                              on_outputs, options, nullptr, rows);
       return;
     }
     // voronoi_graph: the passes twice, the same cells each time (no result
@@ -327,4 +347,5 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
   EXTERN template torchvor::ops::VoronoiOutputs torchvor::ops::voronoi_forward<Exec>(                          \
       const at::Tensor& points, const at::Tensor& box, const c10::optional<at::Tensor>& batch,                \
       c10::optional<int64_t> k, int64_t memory_budget, bool grid_order,                                       \
-      const torchvor::ops::LaunchOnOutputs& on_outputs, torchvor::ops::GraphFaces* graph)
+      const torchvor::ops::LaunchOnOutputs& on_outputs, torchvor::ops::GraphFaces* graph,                     \
+      const c10::optional<at::Tensor>& rows)

@@ -197,7 +197,7 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
   }
   GraphFaces graph;
   graph.moments = moments;
-  const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, false, {}, &graph);
+  const VoronoiOutputs cells = voronoi_forward<Exec>(points, box, batch, k, memory_budget, false, {}, &graph, c10::nullopt);
   const int64_t n = points.size(0);
   const at::TensorOptions longs = points.options().dtype(at::kLong);
   const FaceTensors& faces = graph.faces;
