@@ -30,6 +30,9 @@ struct CpuExec {
   using Lanes = core::SingleLane;  // the lanes of one cooperative item
   // A cell reads its neighbour list in one cache line or two: row-major.
   static constexpr bool kColumnMajorNeighbors = false;
+  // Float32 thread cells keep full 16-byte triangles: a core's caches hold
+  // them, and the compact triangles' rounding and masks only cost it time.
+  static constexpr bool kCompactTriangles = false;
   // One thread per cell (ConvexCell) and per kNN query: a group of lanes
   // has nothing to share its work with here (the cooperative loops run a
   // group of one lane, for the tests).

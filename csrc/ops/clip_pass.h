@@ -340,7 +340,8 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
   // warps on the GPU (each sweeps its cell's rows and points together,
   // where a thread's cell waited on its own loads: vertex_balls.h).
   // Float32 thread cells of the first tier keep their triangles in 12 bytes
-  // (options.compact_triangles).
+  // where the backend asks for it (Exec::kCompactTriangles, unless
+  // options.compact_triangles is off).
   // Double-double's products must round separately (Dekker's split); it
   // runs on the CPU only, one thread per cell.
   // The host's largest tiers run thread cells only (a warp cell's ids are bytes).
@@ -369,7 +370,7 @@ void clip_chunk(const at::Tensor& points, const at::Tensor& box,
       Exec::template for_each_cooperative<typename ClipFunctor<io_t, T, MAX_PLANES>::Arrays>(
           cells.size(0), functor(std::false_type(), std::false_type()));
     } else {
-      if constexpr (kCompactPossible) {
+      if constexpr (kCompactPossible && Exec::kCompactTriangles) {
         if (options.compact_triangles) {
           Exec::for_each_cell(cells.size(0), neighbors.size(1), options, functor(std::true_type(), std::false_type()));
           return;

@@ -23,7 +23,7 @@ struct Options {
   Implementation cells = Implementation::kBackend;  // TORCHVOR_CELLS=thread|cooperative
   Implementation knn = Implementation::kBackend;    // TORCHVOR_KNN=thread|cooperative
   bool tetrahedron_start = true;    // TORCHVOR_CELL_START=box: every cell starts from its box
-  bool compact_triangles = true;    // TORCHVOR_THREAD_TRIANGLES=full: float32 thread cells keep 16-byte triangles
+  bool compact_triangles = true;    // TORCHVOR_THREAD_TRIANGLES=full: CUDA's float32 thread cells keep 16-byte triangles
   double pilot_quantile = 0.98;     // TORCHVOR_PILOT_QUANTILE in (0, 1]: the pilot's cells the first k covers
   int64_t vertex_balls_k = 256;     // TORCHVOR_VERTEX_BALLS_K >= 1: the most neighbours a retry asks for
   int64_t speculative_cells = 16384;  // TORCHVOR_SPECULATIVE_CELLS >= 0: the speculative retry's capacity
