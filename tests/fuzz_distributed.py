@@ -2,7 +2,10 @@
 split over SIZE gloo processes (contiguous shares at random cuts, some empty), the
 distributed voronoi, voronoi_graph and knn against the single-process calls on the
 whole cloud (bit for bit; float32 cells up to rounding), invalid cases raising on
-every rank. A line per case; the summary last.
+every rank; and the periodic voronoi (the case's boxes periodic along some axes, by
+turns, as fuzz_periodic.py) up to rounding (the single process computes a cell that
+reaches past the margin again alone, the ranks every cell with a wider margin). A
+line per case; the summary last.
 
     python tests/fuzz_distributed.py --size 3 --seed 1 --cases 200 --max-n 5000 [--device cuda]
 """
@@ -25,6 +28,7 @@ import torch.multiprocessing as mp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import torchvor  # noqa: E402
 import torchvor.distributed as tvd  # noqa: E402
+import fuzz_periodic  # noqa: E402
 from fuzz_cases import make_case  # noqa: E402
 
 
@@ -112,6 +116,13 @@ def run_case(case, rank: int, size: int, tally, device="cpu") -> list:
     want_knn = torchvor.knn(points, k, batch=batch)
     got_knn = tvd.knn(points[mine], k, batch=my_batch)
     problems += compare("knn", got_knn, torchvor.KNN(*(t[mine] for t in want_knn)), 0.0, tally)
+    axes = fuzz_periodic.AXES[case.index % len(fuzz_periodic.AXES)]
+    boxes = torch.tensor(case.boxes, dtype=case.dtype).to(device)
+    periodic_box = boxes if batch is not None else boxes[0]
+    want_p = torchvor.voronoi(points, periodic_box, batch=batch, periodic=axes, on_failure="flag")
+    got_p = tvd.voronoi(points[mine], periodic_box, batch=my_batch, periodic=axes, on_failure="flag")
+    problems += compare(f"periodic {axes}", got_p, torchvor.VoronoiCells(*(t[mine] for t in want_p)),
+                        max(rtol, 1e-9), tally)
     return problems
 
 

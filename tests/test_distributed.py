@@ -79,6 +79,24 @@ def _same(name, got, want, problems):
             problems.append(f"{name}: {field} differs at {diff}")
 
 
+def _same_periodic(name, got, want, problems):
+    """Periodic cells up to rounding: the single process computes a cell that
+    reaches past the margin again alone, among the points within its reach,
+    where the ranks compute every cell again with a wider margin."""
+    rtol = 1e-9 if got.volume.dtype == torch.float64 else 1e-5
+    for field, a, b in zip(got._fields, got, want):
+        if a.dtype.is_floating_point:
+            scale = b.abs().max() if field == "centroid" and b.numel() else 0.0
+            close = torch.isclose(a.double(), b.double(), rtol=rtol, atol=float(scale) * rtol) | (a.isnan() & b.isnan())
+        elif field == "neighbors_needed":
+            close = (a - b).abs() <= 1
+        else:
+            close = a == b
+        if a.shape != b.shape or not bool(close.all()):
+            diff = (~close).nonzero()[:3].tolist() if a.shape == b.shape else f"shape {tuple(a.shape)}"
+            problems.append(f"{name}: {field} differs at {diff}")
+
+
 def _worker(rank: int, size: int, port: int, report: str) -> None:
     os.environ["MASTER_ADDR"], os.environ["MASTER_PORT"] = "127.0.0.1", str(port)
     torch.set_num_threads(1)
@@ -108,6 +126,14 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
             want = torchvor.voronoi(points, box, batch=batch, on_failure="flag")
             got = tvd.voronoi(points[mine], box, batch=batch[mine] if batch is not None else None, on_failure="flag")
             _same(name + " voronoi", got, torchvor.VoronoiCells(*(t[mine] for t in want)), problems)
+            if box is not None:  # periodic: the points moved across the faces too
+                axes = (True, True, True) if dtype == torch.float64 else (True, False, True)
+                moved = points + torch.tensor([0.5, 0.0, 1.0], dtype=dtype) * torch.tensor(axes, dtype=dtype)
+                b = batch[mine] if batch is not None else None
+                want_p = torchvor.voronoi(moved, box, batch=batch, periodic=axes, on_failure="flag")
+                got_p = tvd.voronoi(moved[mine], box, batch=b, periodic=axes, on_failure="flag")
+                _same_periodic(name + " periodic voronoi", got_p,
+                               torchvor.VoronoiCells(*(t[mine] for t in want_p)), problems)
             want_graph = torchvor.voronoi_graph(points, box, batch=batch, on_failure="flag")
             got_graph = tvd.voronoi_graph(points[mine], box, batch=batch[mine] if batch is not None else None,
                                           on_failure="flag")
@@ -180,6 +206,24 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
         except (ValueError, RuntimeError) as error:
             if rank == 0 and "box" not in str(error):
                 problems.append(f"a point outside the box: {error}")
+        # periodic along x and z: outside along x is fine, outside along y (not periodic) raises everywhere
+        wrapped = torch.rand(5, 3, dtype=torch.float64) + torch.tensor([1.5, 0.0, -2.0], dtype=torch.float64)
+        cells = tvd.voronoi(wrapped, UNIT, periodic=(True, False, True))
+        if cells.volume.shape != (5,) or not bool((cells.status == 0).all()):
+            problems.append(f"periodic outside a periodic axis: {cells.status.tolist()}")
+        if rank == 0:
+            wrapped[0, 1] = 1.5
+        try:
+            tvd.voronoi(wrapped, UNIT, periodic=(True, False, True))
+            problems.append("periodic, a point outside a non-periodic axis: no error")
+        except (ValueError, RuntimeError) as error:
+            if rank == 0 and "not periodic" not in str(error):
+                problems.append(f"periodic, a point outside a non-periodic axis: {error}")
+        try:
+            tvd.voronoi_graph(wrapped, UNIT, periodic=True)
+            problems.append("periodic voronoi_graph: no error")
+        except NotImplementedError:
+            pass
     except Exception as error:  # noqa: BLE001 - reported to the test
         problems.append(f"{type(error).__name__}: {error}")
     finally:

@@ -21,6 +21,11 @@ can cut it: the radius of security), a neighbour row whose k-th distance
 does. The rest run again with the halo their reach asks for, up to the whole
 cloud. The results then go back to the ranks that own the points.
 
+Periodic boxes (voronoi): torchvor.periodic's cells with every decision
+reduced over the ranks (_RankAgreement): each rank pads its own points with
+their images, and the plain cells run as above over every rank's padded
+points, the images' cells not computed.
+
 Collectives are ``all_to_all_single`` and ``all_reduce`` of the points'
 device: gloo for CPU tensors, NCCL for CUDA ones. Every rank of the group must
 call, with points of one dtype and device kind.
@@ -37,7 +42,8 @@ import torch
 import torch.distributed as dist
 
 from .graph import VoronoiGraph, voronoi_graph as _plain_graph
-from .ops import KNN, CellStatus, VoronoiCells, _check_on_failure, as_box
+from . import periodic as _periodic
+from .ops import DEFAULT_MEMORY_BUDGET, KNN, CellStatus, VoronoiCells, _check_on_failure, as_box
 from .ops import _voronoi_rows, knn as _plain_knn
 from .radius import radius as _plain_radius
 
@@ -68,6 +74,15 @@ class _Group:
         self.counts = counts
         self.offset = sum(counts[: self.rank])
         self.total = sum(counts)
+
+    def recounted(self, count: int) -> "_Group":
+        """The same group, each rank holding `count` rows now (offsets follow)."""
+        other = object.__new__(_Group)
+        other.group, other.rank, other.size, other.device = self.group, self.rank, self.size, self.device
+        other.counts = self.all_gather_int(count)
+        other.offset = sum(other.counts[: self.rank])
+        other.total = sum(other.counts)
+        return other
 
     def all_gather_int(self, value: int) -> List[int]:
         """Every rank's `value`, in rank order (one all_reduce)."""
@@ -243,20 +258,28 @@ class _Slabs:
 
 class _Local:
     """This rank's slab: its points (with global index, batch and the rank
-    that owns each) and the halo, ordered by global index."""
+    that owns each) and the halo, ordered by global index. `wanted` (N,) bool:
+    the points whose results are asked for (default: all); the others only
+    bound cells (a periodic call's images)."""
 
-    def __init__(self, g: _Group, slabs: _Slabs, points: torch.Tensor, batch: Optional[torch.Tensor]):
+    def __init__(self, g: _Group, slabs: _Slabs, points: torch.Tensor, batch: Optional[torch.Tensor],
+                 wanted: Optional[torch.Tensor] = None):
         self.g, self.slabs = g, slabs
         n = points.shape[0]
         index = torch.arange(g.offset, g.offset + n, dtype=torch.int64, device=g.device)
         b = batch if batch is not None else torch.zeros(n, dtype=torch.int64, device=g.device)
         dest = slabs.owner(points[:, slabs.axis])
-        self.points, self.index, self.batch = g.exchange(dest, [points, index, b])
+        if wanted is None:
+            self.points, self.index, self.batch = g.exchange(dest, [points, index, b])
+            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
+        else:
+            self.points, self.index, self.batch, wanted = g.exchange(dest, [points, index, b, wanted.to(torch.int64)])
+            self.wanted = wanted.bool()
 
     def cloud(self, width: float):
         """(points, global index, batch, own): the slab's points and every point
         of the other slabs within `width` of it (every rank passes the same
-        width), sorted by global index."""
+        width), sorted by global index; `own`: the slab's wanted points."""
         g = self.g
         rows, dest = self.slabs.halo_dest(self.points[:, self.slabs.axis], g.rank, [width] * g.size)
         halo = g.exchange(dest, [self.points[rows], self.index[rows], self.batch[rows]])
@@ -264,19 +287,21 @@ class _Local:
         index = torch.cat([self.index, halo[1]])
         batch = torch.cat([self.batch, halo[2]])
         own = torch.zeros(index.numel(), dtype=torch.bool, device=g.device)
-        own[: self.index.numel()] = True
+        own[: self.index.numel()] = self.wanted
         order = torch.sort(index).indices
         return points[order], index[order], batch[order], own[order]
 
     def move(self, points: torch.Tensor) -> None:
         """The slab's points moved to `points` (rows of `self.points`); those
-        now in another slab go to its rank (rows stay sorted by global index)."""
+        now in another slab go to its rank (rows stay sorted by global index).
+        Every point is wanted (Lloyd's)."""
         dest = self.slabs.owner(points[:, self.slabs.axis])
         if bool(self.g.reduce(torch.tensor([int(bool((dest != self.g.rank).any()))], device=self.g.device),
                               dist.ReduceOp.MAX)[0]):
             points, index, batch = self.g.exchange(dest, [points, self.index, self.batch])
             order = torch.sort(index).indices
             self.points, self.index, self.batch = points[order], index[order], batch[order]
+            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=self.g.device)
         else:
             self.points = points
 
@@ -284,6 +309,11 @@ class _Local:
         """Edges (E, 2) of global (neighbour, cell) and their `values` sent to
         the rank that owns each cell."""
         return tuple(self.g.exchange(_owner_rank(self.g, self.g.counts, edges[:, 1]), [edges, values]))
+
+    @property
+    def wanted_index(self) -> torch.Tensor:
+        """The global index of the slab's wanted points, in their order."""
+        return self.index[self.wanted]
 
     def send_back(self, index: torch.Tensor, *values: torch.Tensor) -> List[torch.Tensor]:
         """Each of `values`, rows of this slab's points (global `index`), sent to
@@ -327,16 +357,22 @@ def _together(g: _Group, fn, *args):
     return result
 
 
-def _check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torch.Tensor) -> None:
+def _check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torch.Tensor,
+                  periodic: Optional[torch.Tensor] = None) -> None:
     """This rank's points inside their clouds' boxes (as the plain op asks),
-    checked where they are, before they move."""
+    checked where they are, before they move; along the `periodic` axes
+    ((3,) bool) anywhere."""
     if points.shape[0] == 0:
         return
     if box.shape[0] > 1 and batch is None:
         raise ValueError("torchvor.distributed.voronoi: a box per cloud needs batch")
     rows = box[batch] if batch is not None else box[0].expand(points.shape[0], 2, 3)
-    if bool(((points < rows[:, 0]) | (points > rows[:, 1])).any()):
-        raise ValueError("torchvor.distributed.voronoi: points must lie inside box (lo <= p <= hi)")
+    outside = (points < rows[:, 0]) | (points > rows[:, 1])
+    if periodic is not None:
+        outside &= ~periodic
+    if bool(outside.any()):
+        raise ValueError("torchvor.distributed.voronoi: points must lie inside box (lo <= p <= hi)"
+                         + (" along the axes that are not periodic" if periodic is not None else ""))
 
 
 def _halo_rounds(g: _Group, local: _Local, compute, shortfall, max_rounds: int = 8):
@@ -499,7 +535,8 @@ def _start(caller: str, points, box, batch, group, kwargs):
     """A cell call's first steps: (on_failure, group, points, batch, boxes,
     this rank's slab), `kwargs` left with what the plain op takes."""
     if kwargs.pop("periodic", False):
-        raise NotImplementedError(f"torchvor.distributed.{caller}: periodic boxes are not supported yet")
+        raise NotImplementedError(f"torchvor.distributed.{caller}: periodic boxes are supported by "
+                                  f"torchvor.distributed.voronoi only, so far")
     on_failure = kwargs.pop("on_failure", "warn")
     _check_on_failure(f"distributed.{caller}", on_failure)
     g, points, batch, box_arg, slabs = _setup(points, box, batch, group, caller)
@@ -507,9 +544,9 @@ def _start(caller: str, points, box, batch, group, kwargs):
 
 
 def _slab_cells(g: _Group, local: "_Local", box_arg, batched: bool, kwargs) -> VoronoiCells:
-    """The cells of this rank's slab points (the plain voronoi's, on_failure
-    "flag"), in the order of `local.points`. The halo's cells are not
-    computed: its points only bound the slab's."""
+    """The cells of this rank's wanted slab points (the plain voronoi's,
+    on_failure "flag"), in the order of `local.points`. The halo's cells are
+    not computed: its points only bound the slab's."""
 
     def compute(p, b, rows):
         return _voronoi_rows(p, box_arg, rows, b if batched else None, **kwargs)
@@ -534,17 +571,79 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
         group: the process group (default: the world).
         batch: (N_r,) int64 batch vector of this rank's points; the ranks'
             vectors concatenated in rank order must be sorted.
-        **kwargs: ``k``, ``on_failure``, ``memory_budget`` as :func:`torchvor.voronoi`.
+        **kwargs: ``k``, ``on_failure``, ``memory_budget`` and ``periodic``
+            as :func:`torchvor.voronoi` (periodic: the box is required).
 
     Returns:
         :class:`torchvor.VoronoiCells` of this rank's points, in their order:
         the single-process call's results on the whole cloud. The outputs carry
         no gradient (no distributed backward yet).
     """
+    if kwargs.get("periodic", False) is not False:
+        return _periodic_voronoi(points, box, batch, group, kwargs)
     on_failure, g, points, batch, box_arg, local = _start("voronoi", points, box, batch, group, kwargs)
     cells = _slab_cells(g, local, box_arg, batch is not None, kwargs)
     out = _unpack_cells(*local.send_back(local.index, *_pack_cells(cells, slice(None))))
     _report_failures(out, on_failure, "voronoi")
+    return out
+
+
+class _RankAgreement(_periodic.Agreement):
+    """periodic.cells over the ranks of `g`: each rank pads its own points,
+    every decision is reduced over the ranks, and the plain cells are computed
+    over every rank's padded points (the images' cells not computed)."""
+
+    alone = False  # a cell that reaches past the margin asks for a wider one, the whole cloud again
+
+    def __init__(self, g: _Group):
+        self.g = g
+
+    def counts(self, pbox, batch, n):
+        return self.g.reduce(_periodic.cloud_counts(pbox, batch, n), dist.ReduceOp.SUM)
+
+    def all(self, flag: bool) -> bool:
+        return bool(self.g.reduce(torch.tensor([int(flag)], device=self.g.device), dist.ReduceOp.MIN)[0])
+
+    def any(self, flags: torch.Tensor) -> bool:
+        return bool(self.g.reduce(torch.tensor([int(bool(flags.any()))], device=self.g.device),
+                                  dist.ReduceOp.MAX)[0])
+
+    def max(self, values: torch.Tensor) -> torch.Tensor:
+        return self.g.reduce(values, dist.ReduceOp.MAX)
+
+    def rows(self, points, box, rows, batch, k, memory_budget) -> VoronoiCells:
+        g = self.g.recounted(points.shape[0])
+        points = points.detach()
+        wanted = torch.zeros(points.shape[0], dtype=torch.bool, device=g.device)
+        wanted[rows] = True
+        local = _Local(g, _Slabs(g, points, box.double()), points, batch, wanted)
+        cells = _slab_cells(g, local, box, batch is not None, {"k": k, "memory_budget": memory_budget})
+        every = _unpack_cells(*local.send_back(local.wanted_index, *_pack_cells(cells, slice(None))))
+        return VoronoiCells(*(t[rows] for t in every))
+
+
+def _periodic_voronoi(points, box, batch, group, kwargs) -> VoronoiCells:
+    """voronoi with periodic: torchvor.periodic's cells (images, certificate,
+    wider margins) with _RankAgreement."""
+    caller = "voronoi"
+    axes = _periodic.periodic_axes(kwargs.pop("periodic"), f"distributed.{caller}")
+    on_failure = kwargs.pop("on_failure", "warn")
+    _check_on_failure(f"distributed.{caller}", on_failure)
+    unknown = set(kwargs) - {"k", "memory_budget"}
+    if unknown:
+        raise TypeError(f"torchvor.distributed.{caller}: unexpected keyword(s) {sorted(unknown)}")
+    g = _agree(points, batch, caller, group)
+    points = points.detach()
+    batch = _global_batch(g, batch, points.shape[0])
+    if box is None:
+        raise ValueError(f"torchvor.distributed.{caller}: periodic needs a box (its edges are the periods)")
+    full_box = _global_box(g, points, box, batch).to(points.dtype)
+    pbox = _together(g, _periodic.periodic_box, points, full_box, batch, axes, f"distributed.{caller}")
+    _together(g, _check_inside, points, batch, full_box, pbox.mask)
+    found = _periodic.cells(points, pbox, batch, kwargs.get("k"), kwargs.get("memory_budget", DEFAULT_MEMORY_BUDGET),
+                            graph=False, agreement=_RankAgreement(g))
+    out = _periodic._caller_cells(found, points.dtype)
+    _report_failures(out, on_failure, caller)
     return out
 
 

@@ -304,14 +304,23 @@ def face_distance(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch
     return gap.amin(1)
 
 
-def first_margin(pbox: PeriodicBox, batch: Optional[torch.Tensor], n: int, per_point: float) -> torch.Tensor:
-    """(B,) a margin of `per_point` times the mean spacing of each batch element."""
-    num = pbox.box.shape[0]
-    counts = (torch.bincount(batch, minlength=num) if batch is not None
-              else torch.tensor([n], device=pbox.box.device)).to(torch.float64)
+def first_margin(pbox: PeriodicBox, batch: Optional[torch.Tensor], n: int, per_point: float,
+                 counts: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(B,) a margin of `per_point` times the mean spacing of each batch
+    element (`counts`: the points of each, if not those of `batch`)."""
+    if counts is None:
+        counts = cloud_counts(pbox, batch, n)
+    counts = counts.to(torch.float64)
     volume = (pbox.box[:, 1] - pbox.box[:, 0]).double().prod(1)
     spacing = (volume / counts.clamp_min(1)) ** (1.0 / 3.0)
     return (per_point * spacing).to(pbox.box.dtype)
+
+
+def cloud_counts(pbox: PeriodicBox, batch: Optional[torch.Tensor], n: int) -> torch.Tensor:
+    """(B,) int64: the points of each batch element."""
+    if batch is None:
+        return torch.tensor([n], device=pbox.box.device)
+    return torch.bincount(batch, minlength=pbox.box.shape[0])
 
 
 def work_dtype(points: torch.Tensor) -> torch.dtype:
@@ -529,25 +538,60 @@ class _InexactImages(Exception):
     """A float32 call's images would round: it runs again in float64."""
 
 
-def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool) -> PeriodicCells:
+class Agreement:
+    """How cells() decides and computes: in one process (this class), or over
+    the ranks of a process group (torchvor.distributed), where each rank pads
+    its own points, every decision is taken together and the plain cells are
+    computed over every rank's padded points."""
+
+    alone = True  # cells that reach past the margin may be computed again alone (_recompute)
+
+    def counts(self, pbox: PeriodicBox, batch: Optional[torch.Tensor], n: int) -> torch.Tensor:
+        """(B,) the points of each batch element."""
+        return cloud_counts(pbox, batch, n)
+
+    def all(self, flag: bool) -> bool:
+        return flag
+
+    def any(self, flags: torch.Tensor) -> bool:
+        return bool(flags.any())
+
+    def max(self, values: torch.Tensor) -> torch.Tensor:
+        """`values`, each the largest any caller holds."""
+        return values
+
+    def rows(self, points, box, rows, batch, k, memory_budget) -> VoronoiCells:
+        """The plain cells of `points[rows]` among `points` (ops._voronoi_rows)."""
+        from .ops import _voronoi_rows
+
+        return _voronoi_rows(points, box, rows, batch, k, memory_budget)
+
+
+ONE_PROCESS = Agreement()
+
+
+def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool,
+          agreement: Agreement = ONE_PROCESS) -> PeriodicCells:
     """The periodic cells of `points` (and the padded cloud's graph with
     `graph`): padded below lo with images (pad's one_sided) until every
     computed cell is certified (module docstring). Without `graph`, the cells
     that reach past the margin are computed again alone, among the points
     within their reach of a wider padding; with it, everything is (the edges
     of a cell come with their neighbours'). float32 points are computed in
-    float32 where every image is exact (images_exact), else in float64."""
+    float32 where every image is exact (images_exact), else in float64.
+    `agreement`: where the decisions are taken and the plain cells computed
+    (Agreement; the graph in one process only)."""
     if points.dtype == torch.float32:
         try:
-            return _cells(points, pbox, batch, k, memory_budget, graph, torch.float32)
+            return _cells(points, pbox, batch, k, memory_budget, graph, torch.float32, agreement)
         except _InexactImages:
             pass
-    return _cells(points, pbox, batch, k, memory_budget, graph, work_dtype(points))
+    return _cells(points, pbox, batch, k, memory_budget, graph, work_dtype(points), agreement)
 
 
-def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtype: torch.dtype) -> PeriodicCells:
+def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtype: torch.dtype,
+           agree: Agreement) -> PeriodicCells:
     from .graph import voronoi_graph as _plain_graph
-    from .ops import _voronoi_rows
 
     exact_only = dtype == torch.float32
     given_box = pbox
@@ -556,11 +600,11 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
     x = wrap(given, pbox, batch)
     n = x.shape[0]
     full = _full_reach(pbox)
-    margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS), full)
+    margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS, agree.counts(pbox, batch, n)), full)
     one_sided = True  # until an image would round: then both sides, the points' cells in place
     for round_ in range(MARGIN_ROUNDS + 1):
         padded = pad(x, pbox, batch, margin, one_sided=one_sided)
-        if one_sided and not images_exact(points, x, padded, given_box, batch):
+        if one_sided and not agree.all(images_exact(points, x, padded, given_box, batch)):
             if exact_only:
                 raise _InexactImages()
             one_sided = False
@@ -571,12 +615,12 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
             own = VoronoiCells(*(t.index_select(0, padded.position) for t in result.cells))
         else:  # the images only bound the points' cells: theirs are not computed
             result = None
-            own = _voronoi_rows(padded.points, padded.box, padded.position, padded.batch, k, memory_budget)
+            own = agree.rows(padded.points, padded.box, padded.position, padded.batch, k, memory_budget)
         seed = padded.points.detach().index_select(0, padded.position)  # where each point's cell was computed
         moved = [padded.moved]
         within = clearance(padded, pbox, batch, margin, _reach(own))
         short = _reaching_past(own, within)
-        if not graph:  # the few cells that reach past the margin, alone
+        if not graph and agree.alone:  # the few cells that reach past the margin, alone
             for again in range(MARGIN_ROUNDS):
                 if not bool(short.any()) or not _few_pairs(x, own, short, pbox, batch):
                     break  # none left, or so many that the whole cloud runs again (below)
@@ -587,11 +631,12 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
                                                           one_sided)
                 moved.append(short.nonzero().squeeze(1))
                 short = _reaching_past(own, within)
-        if not bool(short.any()):
+        if not agree.any(short):
             break
         if bool((margin >= full).all()):
             raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
-        margin = _wider(margin, own, short, x, pbox, batch, full, one_sided, last=round_ == MARGIN_ROUNDS - 1)
+        margin = agree.max(_wider(margin, own, short, x, pbox, batch, full, one_sided,
+                                  last=round_ == MARGIN_ROUNDS - 1))
     moved = torch.unique(torch.cat(moved)) if x is given else None
     return PeriodicCells(own, given, x, seed, moved, padded, result)
 
