@@ -161,6 +161,12 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
                     if (abs(a.energy - b.energy) > 1e-12 * abs(b.energy)
                             or abs(a.max_displacement - b.max_displacement) > 1e-12 * b.max_displacement):
                         problems.append(f"{name} lloyd: history differs: {a} vs {b}")
+                # periodic: the points wrap into the box (to rounding, as the periodic cells)
+                want_p = torchvor.lloyd(points, box, iters=3, batch=batch, periodic=True)
+                got_p = tvd.lloyd(points[mine], box, iters=3, periodic=True,
+                                  batch=batch[mine] if batch is not None else None)
+                if not torch.allclose(got_p, want_p[mine], rtol=0, atol=1e-12):
+                    problems.append(f"{name} periodic lloyd: points differ by {(got_p - want_p[mine]).abs().max()}")
             k = 8
             want_knn = torchvor.knn(points, k, batch=batch)
             got_knn = tvd.knn(points[mine], k, batch=batch[mine] if batch is not None else None)

@@ -21,7 +21,7 @@ can cut it: the radius of security), a neighbour row whose k-th distance
 does. The rest run again with the halo their reach asks for, up to the whole
 cloud. The results then go back to the ranks that own the points.
 
-Periodic boxes (voronoi): torchvor.periodic's cells with every decision
+Periodic boxes (voronoi, lloyd): torchvor.periodic's cells with every decision
 reduced over the ranks (_RankAgreement): each rank pads its own points with
 their images, and the plain cells run as above over every rank's padded
 points, the images' cells not computed.
@@ -310,6 +310,10 @@ class _Local:
         the rank that owns each cell."""
         return tuple(self.g.exchange(_owner_rank(self.g, self.g.counts, edges[:, 1]), [edges, values]))
 
+    def wrap(self, points: torch.Tensor) -> torch.Tensor:
+        """Moved points as they stay (no periodic axis)."""
+        return points
+
     @property
     def wanted_index(self) -> torch.Tensor:
         """The global index of the slab's wanted points, in their order."""
@@ -536,7 +540,7 @@ def _start(caller: str, points, box, batch, group, kwargs):
     this rank's slab), `kwargs` left with what the plain op takes."""
     if kwargs.pop("periodic", False):
         raise NotImplementedError(f"torchvor.distributed.{caller}: periodic boxes are supported by "
-                                  f"torchvor.distributed.voronoi only, so far")
+                                  f"torchvor.distributed.voronoi and lloyd only, so far")
     on_failure = kwargs.pop("on_failure", "warn")
     _check_on_failure(f"distributed.{caller}", on_failure)
     g, points, batch, box_arg, slabs = _setup(points, box, batch, group, caller)
@@ -622,16 +626,10 @@ class _RankAgreement(_periodic.Agreement):
         return VoronoiCells(*(t[rows] for t in every))
 
 
-def _periodic_voronoi(points, box, batch, group, kwargs) -> VoronoiCells:
-    """voronoi with periodic: torchvor.periodic's cells (images, certificate,
-    wider margins) with _RankAgreement."""
-    caller = "voronoi"
-    axes = _periodic.periodic_axes(kwargs.pop("periodic"), f"distributed.{caller}")
-    on_failure = kwargs.pop("on_failure", "warn")
-    _check_on_failure(f"distributed.{caller}", on_failure)
-    unknown = set(kwargs) - {"k", "memory_budget"}
-    if unknown:
-        raise TypeError(f"torchvor.distributed.{caller}: unexpected keyword(s) {sorted(unknown)}")
+def _periodic_setup(points, box, batch, group, periodic, caller: str):
+    """(group, points (detached), batch, periodic box) of a periodic call,
+    after the checks every rank agrees on."""
+    axes = _periodic.periodic_axes(periodic, f"distributed.{caller}")
     g = _agree(points, batch, caller, group)
     points = points.detach()
     batch = _global_batch(g, batch, points.shape[0])
@@ -640,10 +638,45 @@ def _periodic_voronoi(points, box, batch, group, kwargs) -> VoronoiCells:
     full_box = _global_box(g, points, box, batch).to(points.dtype)
     pbox = _together(g, _periodic.periodic_box, points, full_box, batch, axes, f"distributed.{caller}")
     _together(g, _check_inside, points, batch, full_box, pbox.mask)
-    found = _periodic.cells(points, pbox, batch, kwargs.get("k"), kwargs.get("memory_budget", DEFAULT_MEMORY_BUDGET),
-                            graph=False, agreement=_RankAgreement(g))
-    out = _periodic._caller_cells(found, points.dtype)
-    _report_failures(out, on_failure, caller)
+    return g, points, batch, pbox
+
+
+class _Owned:
+    """A rank's own points in a periodic call (as _Local for lloyd, but they
+    stay on their rank: each periodic call pads and cuts them anew)."""
+
+    def __init__(self, g: _Group, points: torch.Tensor, batch: Optional[torch.Tensor], pbox):
+        self.g, self.points, self.pbox, self.given_batch = g, points, pbox, batch
+        self.batch = batch if batch is not None else torch.zeros(points.shape[0], dtype=torch.int64, device=g.device)
+        self.index = torch.arange(g.offset, g.offset + points.shape[0], dtype=torch.int64, device=g.device)
+
+    def cells(self, k: Optional[int], memory_budget: int = DEFAULT_MEMORY_BUDGET) -> VoronoiCells:
+        found = _periodic.cells(self.points, self.pbox, self.given_batch, k, memory_budget, graph=False,
+                                agreement=_RankAgreement(self.g))
+        return _periodic._caller_cells(found, self.points.dtype)
+
+    def wrap(self, points: torch.Tensor) -> torch.Tensor:
+        return _periodic.wrap(points, self.pbox, self.given_batch)
+
+    def move(self, points: torch.Tensor) -> None:
+        self.points = points
+
+    def send_back(self, index: torch.Tensor, *values: torch.Tensor) -> List[torch.Tensor]:
+        return list(values)  # the rows are this rank's own, in its order
+
+
+def _periodic_voronoi(points, box, batch, group, kwargs) -> VoronoiCells:
+    """voronoi with periodic: torchvor.periodic's cells (images, certificate,
+    wider margins) with _RankAgreement."""
+    periodic = kwargs.pop("periodic")
+    on_failure = kwargs.pop("on_failure", "warn")
+    _check_on_failure("distributed.voronoi", on_failure)
+    unknown = set(kwargs) - {"k", "memory_budget"}
+    if unknown:
+        raise TypeError(f"torchvor.distributed.voronoi: unexpected keyword(s) {sorted(unknown)}")
+    g, points, batch, pbox = _periodic_setup(points, box, batch, group, periodic, "voronoi")
+    out = _Owned(g, points, batch, pbox).cells(kwargs.get("k"), kwargs.get("memory_budget", DEFAULT_MEMORY_BUDGET))
+    _report_failures(out, on_failure, "voronoi")
     return out
 
 
@@ -695,7 +728,7 @@ def voronoi_graph(points: torch.Tensor, box=None, *, group=None, batch: Optional
 
 def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: Optional[float] = None,
           k: Optional[int] = None, batch: Optional[torch.Tensor] = None, progress: bool = False, callback=None,
-          return_history: bool = False):
+          return_history: bool = False, periodic=False):
     """:func:`torchvor.lloyd` of the cloud that the ranks' points make together
     (rank order), each rank getting its own points relaxed, in its order.
 
@@ -714,6 +747,9 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
             ``progress`` prints on rank 0.
         callback: ``callback(iteration, points, cells)`` on every rank with its
             own moved points and cells; True on any rank stops every rank.
+        periodic: as :func:`torchvor.lloyd` (the box required): each
+            iteration is a periodic :func:`voronoi`, the points wrapped into the
+            box, and they stay on their owners' ranks.
 
     Returns:
         This rank's relaxed points (a new tensor), or ``(points, history)``.
@@ -726,20 +762,29 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
         raise ValueError(f"torchvor.distributed.lloyd: tol must be None or >= 0, got {tol!r}")
     if k is not None and (not isinstance(k, int) or isinstance(k, bool) or k < 1):
         raise ValueError(f"torchvor.distributed.lloyd: k must be None or a positive int, got {k!r}")
-    g, current, batch, box_arg, slabs = _setup(points, box, batch, group, "lloyd")
+    if periodic is not False:
+        g, current, batch, pbox = _periodic_setup(points, box, batch, group, periodic, "lloyd")
+        box_arg = pbox.box
+        local = _Owned(g, current, batch, pbox)
+    else:
+        g, current, batch, box_arg, slabs = _setup(points, box, batch, group, "lloyd")
+        # the points stay on their slabs' ranks between iterations; those that cross a boundary move
+        local = _Local(g, slabs, current, batch)
     edges = (box_arg[:, 1] - box_arg[:, 0]).double().norm(dim=1)
-    # the points stay on their slabs' ranks between iterations; those that cross a boundary move
-    local = _Local(g, slabs, current, batch)
     history = []
     for iteration in range(iters):
         start = time.perf_counter()
-        cells = _slab_cells(g, local, box_arg, batch is not None, {"k": k})
+        if periodic is not False:
+            cells = local.cells(k)
+        else:
+            cells = _slab_cells(g, local, box_arg, batch is not None, {"k": k})
         computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
-        moved = torch.where(computed.unsqueeze(1), cells.centroid, local.points)
+        target = torch.where(computed.unsqueeze(1), cells.centroid, local.points)
         needed = neighbors_quantile(cells.neighbors_needed[computed])
-        diagonal = edges[local.batch] if batch is not None else edges[0].expand(moved.shape[0])
-        moves = ((moved - local.points).double().norm(dim=1) / diagonal).max() if moved.shape[0] else \
+        diagonal = edges[local.batch] if batch is not None else edges[0].expand(target.shape[0])
+        moves = ((target - local.points).double().norm(dim=1) / diagonal).max() if target.shape[0] else \
             torch.zeros((), dtype=torch.float64, device=g.device)
+        moved = local.wrap(target)
         sums = g.reduce(torch.stack([cells.second_moment.double().sum(), (~computed).sum().double()]),
                         dist.ReduceOp.SUM)
         maxima = g.reduce(torch.stack([moves.double(), torch.tensor(float(needed), dtype=torch.float64,
