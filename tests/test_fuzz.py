@@ -18,6 +18,7 @@ import torchvor
 from torchvor import CellStatus
 
 import fuzz
+import fuzz_workers
 
 CI_SEED = 44
 CI_CASES = 90  # six rounds of the 15 kinds: each kind three times in each dtype
@@ -267,8 +268,8 @@ def test_workers_claim_each_case_once_in_order(tmp_path):
     order, each once, whichever asks next (a budget cuts the range at one place)."""
     counter = tmp_path / "next"
     counter.write_text("0")
-    first = iter(fuzz.ClaimedCases(range(10, 17), str(counter)))
-    second = iter(fuzz.ClaimedCases(range(10, 17), str(counter)))
+    first = iter(fuzz_workers.ClaimedCases(range(10, 17), str(counter)))
+    second = iter(fuzz_workers.ClaimedCases(range(10, 17), str(counter)))
     taken = [next(first), next(second), next(second), next(first)]
     taken += list(second) + list(first)
     assert taken == list(range(10, 17))
