@@ -215,6 +215,10 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
         except (ValueError, RuntimeError) as error:
             if rank == 0 and "not periodic" not in str(error):
                 problems.append(f"periodic, a point outside a non-periodic axis: {error}")
+        # periodic along no axis is the plain call
+        plain = tvd.voronoi(outside.clamp(0, 1), UNIT, periodic=(False, False, False))
+        if not torch.equal(plain.volume, tvd.voronoi(outside.clamp(0, 1), UNIT, periodic=None).volume):
+            problems.append("periodic along no axis: not the plain call")
         try:
             tvd.voronoi_graph(wrapped, UNIT, periodic=True)
             problems.append("periodic voronoi_graph: no error")

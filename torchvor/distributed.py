@@ -538,7 +538,7 @@ def _setup(points, box, batch, group, caller: str):
 def _start(caller: str, points, box, batch, group, kwargs):
     """A cell call's first steps: (on_failure, group, points, batch, boxes,
     this rank's slab), `kwargs` left with what the plain op takes."""
-    if kwargs.pop("periodic", False):
+    if _periodic.periodic_axes(kwargs.pop("periodic", False), f"distributed.{caller}") is not None:
         raise NotImplementedError(f"torchvor.distributed.{caller}: periodic boxes are supported by "
                                   f"torchvor.distributed.voronoi and lloyd only, so far")
     on_failure = kwargs.pop("on_failure", "warn")
@@ -583,8 +583,9 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
         the single-process call's results on the whole cloud. The outputs carry
         no gradient (no distributed backward yet).
     """
-    if kwargs.get("periodic", False) is not False:
-        return _periodic_voronoi(points, box, batch, group, kwargs)
+    axes = _periodic.periodic_axes(kwargs.pop("periodic", False), "distributed.voronoi")
+    if axes is not None:
+        return _periodic_voronoi(points, box, batch, group, axes, kwargs)
     on_failure, g, points, batch, box_arg, local = _start("voronoi", points, box, batch, group, kwargs)
     cells = _slab_cells(g, local, box_arg, batch is not None, kwargs)
     out = _unpack_cells(*local.send_back(local.index, *_pack_cells(cells, slice(None))))
@@ -626,10 +627,9 @@ class _RankAgreement(_periodic.Agreement):
         return VoronoiCells(*(t[rows] for t in every))
 
 
-def _periodic_setup(points, box, batch, group, periodic, caller: str):
-    """(group, points (detached), batch, periodic box) of a periodic call,
-    after the checks every rank agrees on."""
-    axes = _periodic.periodic_axes(periodic, f"distributed.{caller}")
+def _periodic_setup(points, box, batch, group, axes, caller: str):
+    """(group, points (detached), batch, periodic box) of a periodic call
+    along `axes` (periodic_axes'), after the checks every rank agrees on."""
     g = _agree(points, batch, caller, group)
     points = points.detach()
     batch = _global_batch(g, batch, points.shape[0])
@@ -665,16 +665,15 @@ class _Owned:
         return list(values)  # the rows are this rank's own, in its order
 
 
-def _periodic_voronoi(points, box, batch, group, kwargs) -> VoronoiCells:
+def _periodic_voronoi(points, box, batch, group, axes, kwargs) -> VoronoiCells:
     """voronoi with periodic: torchvor.periodic's cells (images, certificate,
     wider margins) with _RankAgreement."""
-    periodic = kwargs.pop("periodic")
     on_failure = kwargs.pop("on_failure", "warn")
     _check_on_failure("distributed.voronoi", on_failure)
     unknown = set(kwargs) - {"k", "memory_budget"}
     if unknown:
         raise TypeError(f"torchvor.distributed.voronoi: unexpected keyword(s) {sorted(unknown)}")
-    g, points, batch, pbox = _periodic_setup(points, box, batch, group, periodic, "voronoi")
+    g, points, batch, pbox = _periodic_setup(points, box, batch, group, axes, "voronoi")
     out = _Owned(g, points, batch, pbox).cells(kwargs.get("k"), kwargs.get("memory_budget", DEFAULT_MEMORY_BUDGET))
     _report_failures(out, on_failure, "voronoi")
     return out
@@ -762,8 +761,9 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
         raise ValueError(f"torchvor.distributed.lloyd: tol must be None or >= 0, got {tol!r}")
     if k is not None and (not isinstance(k, int) or isinstance(k, bool) or k < 1):
         raise ValueError(f"torchvor.distributed.lloyd: k must be None or a positive int, got {k!r}")
-    if periodic is not False:
-        g, current, batch, pbox = _periodic_setup(points, box, batch, group, periodic, "lloyd")
+    axes = _periodic.periodic_axes(periodic, "distributed.lloyd")
+    if axes is not None:
+        g, current, batch, pbox = _periodic_setup(points, box, batch, group, axes, "lloyd")
         box_arg = pbox.box
         local = _Owned(g, current, batch, pbox)
     else:
@@ -774,7 +774,7 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
     history = []
     for iteration in range(iters):
         start = time.perf_counter()
-        if periodic is not False:
+        if axes is not None:
             cells = local.cells(k)
         else:
             cells = _slab_cells(g, local, box_arg, batch is not None, {"k": k})
