@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One call on the GPU machine: build for sm_90, then run the steps named (default: cudatests):
 # the tests (CPU and CUDA), the benchmarks, profiles and sanitizers; logs go to $OUT.
-#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|periodic|distributed|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
+#   usage: bash benchmarks/gpu_check.sh [tests|cudatests|bench|graph|periodic|power|distributed|compare|time|fuzz|lloyd10m|profile|timeline|sanitize|ncu|build]...
 # compare needs BASELINE=<source tree of another commit> (e.g. `git archive <commit> | tar -x -C .baseline`):
 # it is built beside this tree, its CUDA outputs compared bit for bit, and both timed in turns.
 set -u -o pipefail
@@ -78,6 +78,8 @@ for step in "${@:-cudatests}"; do
       for dtype in float32 float64; do
         python3 benchmarks/bench_periodic.py --device cuda --sizes 1M,10M --repeats 3 --dtype $dtype $( [ $dtype = float32 ] && echo --profile) 2>&1 | tee -a "$OUT/bench_periodic.log"
       done ;;
+    power)  # power_weights to 1e-6, then the power diagram against plain voronoi (1M, 10M blue and white)
+      python3 benchmarks/bench_power.py --device cuda --sizes 1M,10M --repeats 3 2>&1 | tee "$OUT/bench_power.log" ;;
     graph)  # voronoi_graph and the cells' backward against voronoi (1M, 10M blue and white)
       python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 --profile 2>&1 | tee "$OUT/bench_graph.log" ;;
     compare)

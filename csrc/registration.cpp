@@ -63,6 +63,27 @@ TORCH_LIBRARY(torchvor, m) {
       "lloyd_step(Tensor points, Tensor box, Tensor? batch, int? k, int sample_stride, int histogram_bins, "
       "int memory_budget=1073741824) -> (Tensor moved, Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors_needed, Tensor radius, Tensor order, Tensor measures, Tensor histogram)");
+  // Power (Laguerre) cells of points with weights (N,), clipped to box
+  // (B, 2, 3), for the cells `rows` (M,) int64 from their neighbour lists
+  // neighbors (M, k) int64 (torchvor::knn's, sorted by distance, -1 padded),
+  // at array tier `tier` (0-3), in float64: volume (M,), centroid (M, 3),
+  // second_moment (M,), status (M,) int8 (7: EMPTY), neighbors_needed (M,)
+  // int32 (SECURITY_RADIUS_NOT_REACHED: the list was too short), radius (M,)
+  // float32, and face_count (M,) int32 (faces on neighbours and walls).
+  // weight_max (B,) float64: the largest weight of each cloud.
+  m.def(
+      "power_cells(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, Tensor neighbors, "
+      "Tensor weight_max, int tier) -> (Tensor volume, Tensor centroid, Tensor second_moment, Tensor status, "
+      "Tensor neighbors_needed, Tensor radius, Tensor face_count)");
+  // The faces of the same cells, cell m's from face_offsets[m] (M + 1,)
+  // int64 (the running sum of power_cells' face_count): face_target (F,)
+  // int64, the neighbour's index or -1 - wall (walls -x, +x, -y, +y, -z, +z),
+  // face_area (F,), face_centroid (F, 3), and face_inertia (F,), the integral
+  // over the face of |y - face centroid|^2.
+  m.def(
+      "power_faces(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, Tensor neighbors, "
+      "Tensor weight_max, int tier, Tensor face_offsets) -> (Tensor face_target, Tensor face_area, "
+      "Tensor face_centroid, Tensor face_inertia)");
   // The CVT energy of voronoi_cells' cells, energy () = the sum of the second
   // moments, with its gradient (N, 3) = 2 volume (points - centroid)
   // (implemented in Python: torchvor/cvt.py).

@@ -261,6 +261,7 @@ class CellOracle:
     # vertices are rounded to the coordinates' spacing, as large as a cell of points a few
     # ulps apart (None: from the absolute vertices)
     relative_radius: Optional[float] = None
+    empty: bool = False  # a power cell that no point of the box belongs to
 
     @property
     def radius(self) -> float:
@@ -338,10 +339,14 @@ def _face_fans(verts: np.ndarray, vertex_of: np.ndarray, plane_of: np.ndarray, n
     return (triangles, planes[face[fan]]) if with_planes else triangles
 
 
-def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
+def voronoi_cell_oracle(points, i: int, box, weights=None) -> CellOracle:
     """Voronoi cell of points[i] clipped to box = (lo, hi), by Qhull half-space
     intersection in coordinates relative to the seed (so large offsets lose no
     precision), using the bisectors of all other points and the 6 box planes.
+    With `weights` (N,), the power cell: x . r <= (|r|^2 + w_i - w_j) / 2
+    relative to the seed; an empty one (no interior point, by linprog) has
+    volume 0, centroid the seed and `empty` set; a copy of the seed with a
+    larger weight empties it.
 
     Volume and first moment come from tetrahedra (interior point, hull
     triangle); the second moment about the seed from the same tetrahedra
@@ -357,15 +362,20 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     rel = pts - seed
     r2 = np.einsum("ij,ij->i", rel, rel)
     index = np.arange(len(pts))
-    if np.any((r2 == 0) & (index < i)):
+    copies = (r2 == 0) & (index != i)
+    w = None if weights is None else _np64(weights).reshape(-1)
+    if w is not None and np.any(copies & (w > w[i])):
+        return CellOracle(0.0, seed.copy(), 0.0, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), seed, empty=True)
+    if np.any(copies & (index < i) & (True if w is None else w == w[i])):
         return CellOracle(0.0, seed.copy(), 0.0, np.zeros((0, 3)), np.zeros(0, dtype=np.int64),
                           seed, duplicate=True)
     use = (index != i) & (r2 > 0)
     owner = np.concatenate([np.full(6, -1), index[use]])  # point index of each half-space
     r = rel[use]
     norm = np.sqrt(r2[use])
-    # bisector: x . r <= |r|^2 / 2  ->  (r/|r|) . x - |r|/2 <= 0
-    bis = np.hstack([r / norm[:, None], -0.5 * norm[:, None]])
+    # bisector: x . r <= |r|^2 / 2  ->  (r/|r|) . x - |r|/2 <= 0 (power: |r|^2 + w_i - w_j)
+    reach = r2[use] if w is None else r2[use] + w[i] - w[use]
+    bis = np.hstack([r / norm[:, None], -0.5 * (reach / norm)[:, None]])
     lo_r, hi_r = lo - seed, hi - seed
     eye = np.eye(3)
     box_hs = np.vstack([np.hstack([-eye, lo_r[:, None]]),   # -x + lo <= 0
@@ -374,7 +384,13 @@ def voronoi_cell_oracle(points, i: int, box) -> CellOracle:
     scale = float(np.max(hi_r - lo_r))
     # the seed (origin) is interior unless it lies (nearly) on the box or a bisector
     interior = np.zeros(3)
-    if (-hs[:, 3]).min() <= 1e-6 * scale:
+    if w is not None:
+        try:
+            interior = _interior_point(hs)
+        except RuntimeError:  # no interior point: the power cell is empty
+            return CellOracle(0.0, seed.copy(), 0.0, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), seed,
+                              empty=True)
+    elif (-hs[:, 3]).min() <= 1e-6 * scale:
         interior = _interior_point(hs)
     try:
         hsi = HalfspaceIntersection(hs, interior)

@@ -8,9 +8,10 @@ from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi  # loads
 
 from .graph import VoronoiGraph, voronoi_graph, voronoi_laplacian
 from .radius import Radius, radius, radius_graph
+from .power import PowerWeights, power_lloyd, power_weights
 
 __all__ = ["KNN", "CellStatus", "Radius", "VoronoiCells", "VoronoiGraph", "knn", "knn_graph", "radius", "radius_graph",
-           "voronoi", "voronoi_graph", "voronoi_laplacian"]
+           "voronoi", "voronoi_graph", "voronoi_laplacian", "PowerWeights", "power_lloyd", "power_weights"]
 # Lloyd relaxation layer. Note: the function torchvor.lloyd shadows the module
 # attribute of the same name; import module contents with `from torchvor.lloyd import ...`.
 from .cvt import cvt_energy

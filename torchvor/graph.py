@@ -14,6 +14,7 @@ from .ops import (DEFAULT_MEMORY_BUDGET, BoxLike, PeriodicLike, VoronoiCells, _b
                   _check_on_failure, _check_points, _check_tensor, _no_backward, _non_differentiable,
                   _report_failures, _voronoi_cells_fake)
 from . import periodic as _periodic
+from . import power as _power
 
 
 class VoronoiGraph(NamedTuple):
@@ -51,6 +52,7 @@ def voronoi_graph(
     on_failure: str = "warn",
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
     periodic: PeriodicLike = False,
+    weights: Optional[torch.Tensor] = None,
 ) -> VoronoiGraph:
     """The Voronoi graph: every face between two cells, with its area and centroid.
 
@@ -78,6 +80,8 @@ def voronoi_graph(
         memory_budget: as :func:`torchvor.voronoi`.
         periodic: as :func:`torchvor.voronoi`; edges then carry ``shift``, and
             face centroids lie next to cell i's point.
+        weights: as :func:`torchvor.voronoi`: the power diagram's faces (an
+            empty cell has none). Not with ``periodic``.
 
     Returns:
         :class:`VoronoiGraph`. Exact duplicates (status DUPLICATE) have no edges.
@@ -86,6 +90,17 @@ def voronoi_graph(
     _check_on_failure("voronoi_graph", on_failure)
     _check_tensor(points, "points")
     axes = _periodic.periodic_axes(periodic, "voronoi_graph")
+    if weights is not None:
+        if axes is not None:
+            raise NotImplementedError("torchvor.voronoi_graph: weights (power diagrams) in periodic boxes are not "
+                                      "supported yet")
+        box_tensor = _box_for_call(points, box, batch)
+        _power.check_inputs(points, box_tensor, batch)
+        weights = _power.check_weights(points, weights, "voronoi_graph")
+        cells, edge_index, area, centroid, wall_area = _power.voronoi_graph(
+            points, weights, box_tensor, batch, k, memory_budget)
+        _report_failures("voronoi_graph", cells, on_failure)
+        return VoronoiGraph(edge_index, area, centroid, wall_area, cells)
     if axes is not None:
         _check_points(points, "voronoi_graph")
         pbox = _periodic.periodic_box(points, box, batch, axes, "voronoi_graph")
@@ -110,6 +125,7 @@ def voronoi_laplacian(
     k: Optional[int] = None,
     on_failure: str = "warn",
     periodic: PeriodicLike = False,
+    weights: Optional[torch.Tensor] = None,
 ) -> torch.Tensor:
     """The finite-volume Laplacian of the Voronoi cells, a sparse (N, N) matrix.
 
@@ -121,14 +137,14 @@ def voronoi_laplacian(
     Divide row i by the cell's volume for the Laplacian of the field's mean.
 
     Args:
-        points, box, batch, k, on_failure, periodic: as :func:`voronoi_graph`;
+        points, box, batch, k, on_failure, periodic, weights: as :func:`voronoi_graph`;
             a periodic face's distance is to the image of j that i meets
             (several images of j add up).
 
     Returns:
         (N, N) sparse COO tensor (coalesced), points' dtype and device.
     """
-    graph = voronoi_graph(points, box, batch=batch, k=k, on_failure=on_failure, periodic=periodic)
+    graph = voronoi_graph(points, box, batch=batch, k=k, on_failure=on_failure, periodic=periodic, weights=weights)
     source, target = graph.edge_index
     n = points.shape[0]
     across = points[source] - points[target]

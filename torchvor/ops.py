@@ -49,6 +49,7 @@ class CellStatus(enum.IntEnum):
     BOUNDARY_ERROR = 4
     DUPLICATE = 5  # exact copy of a lower-index point: volume 0, centroid = the point
     ILL_CONDITIONED = 6  # the integrals cancel beyond the arithmetic's resolution (retried wider)
+    EMPTY = 7  # a power cell (weights) that no point of the box belongs to: volume 0, centroid = the point
 
 
 class VoronoiCells(NamedTuple):
@@ -254,6 +255,7 @@ def voronoi(
     on_failure: str = "warn",
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
     periodic: PeriodicLike = False,
+    weights: Optional[torch.Tensor] = None,
 ) -> VoronoiCells:
     """Volume, centroid and second moment of every 3D Voronoi cell, clipped to a box.
 
@@ -316,6 +318,16 @@ def voronoi(
             axis are taken at their image inside. The points near the
             periodic faces are padded with their images; float32 points are
             computed in float64 (:mod:`torchvor.periodic`).
+        weights: (N,) the points' dtype and device: the power (Laguerre)
+            diagram, cell i = {y : |y - x_i|^2 - w_i <= |y - x_j|^2 - w_j for
+            all j} (:mod:`torchvor.power`). A cell may lie away from its point
+            or be empty (status EMPTY, volume 0, centroid the point); a copy
+            of a point with a larger weight empties its cell. Computed in
+            float64 (outputs in the points' dtype), with ``k`` the first
+            pass's neighbours (default 32, doubled for the cells that need
+            more). Volume, centroid and second moment are differentiable in
+            the weights (not in the points: that backward raises). Not with
+            ``periodic``.
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,
@@ -328,6 +340,16 @@ def voronoi(
     _check_on_failure("voronoi", on_failure)
     _check_tensor(points, "points")
     axes = _periodic.periodic_axes(periodic, "voronoi")
+    if weights is not None:
+        if axes is not None:
+            raise NotImplementedError("torchvor.voronoi: weights (power diagrams) in periodic boxes are not "
+                                      "supported yet")
+        box_tensor = _box_for_call(points, box, batch)
+        _power.check_inputs(points, box_tensor, batch)
+        weights = _power.check_weights(points, weights, "voronoi")
+        cells = _power.voronoi(points, weights, box_tensor, batch, k, memory_budget)
+        _report_failures("voronoi", cells, on_failure)
+        return cells
     if axes is not None:
         _check_points(points, "voronoi")
         pbox = _periodic.periodic_box(points, box, batch, axes, "voronoi")
@@ -349,7 +371,8 @@ def _report_failures(caller: str, cells: VoronoiCells, on_failure: str) -> None:
     """Raise or warn (as `on_failure` says) about cells that could not be computed."""
     if on_failure == "flag" or torch.compiler.is_compiling():
         return
-    failed = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+    failed = ((cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+              & (cells.status != CellStatus.EMPTY))
     if bool(failed.any()):
         count = int(failed.sum())
         codes = sorted({CellStatus(int(c)).name for c in cells.status[failed].unique().cpu()})
@@ -510,3 +533,5 @@ def _voronoi_cells_grid_order_fake(points, box, batch=None, k=None, memory_budge
 
 # The periodic calls (images of the points near the faces) build on the ops above.
 from . import periodic as _periodic  # noqa: E402
+# Power diagrams (weights) too.
+from . import power as _power  # noqa: E402

@@ -33,7 +33,9 @@ struct CellRounding {
 // of a face far from the seed can lie far outside it (a needle cell reaching
 // a box face): large tetrahedra then cancel (ratio 3e6 on a 1e-11 needle,
 // against at most ~7 on white noise).
-template <typename T>
+// kGeneralPlanes: the cell's planes are any (power_plane), not only
+// bisectors and box faces; the feet and the weights then take a division.
+template <typename T, bool kGeneralPlanes = false>
 struct CellMoments {
   T six_volume;              // 6 * volume
   T unsigned_six_volume;     // 6 * sum of |tetrahedron volume|
@@ -79,7 +81,11 @@ struct CellMoments {
       TV_UNROLL
       for (int e = 0; e < 3; ++e) {
         inverse_h[e] = feet2[e] > T(0) ? rsqrt_of(feet2[e]) : T(0);
-        inverse_norms *= dot(planes[e].normal, planes[e].normal) == T(1) ? T(1) : T(0.5) * inverse_h[e];
+        if constexpr (kGeneralPlanes) {
+          inverse_norms *= rsqrt_of(dot(planes[e].normal, planes[e].normal));
+        } else {
+          inverse_norms *= dot(planes[e].normal, planes[e].normal) == T(1) ? T(1) : T(0.5) * inverse_h[e];
+        }
       }
       const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
       const T sine = (det < T(0) ? -det : det) * inverse_norms;
@@ -116,6 +122,7 @@ struct CellMoments {
   // A bisector with |normal| = 1 has offset 1/2: either formula holds. (No
   // branch to a division for planes of neither kind: it slows the warp cell.)
   TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
+    if constexpr (kGeneralPlanes) return (-p.offset / dot(p.normal, p.normal)) * p.normal;
     const bool unit_normal = dot(p.normal, p.normal) == T(1);
     return (unit_normal ? -p.offset : T(-0.5)) * p.normal;
   }

@@ -124,6 +124,26 @@ TV_HD Plane<T> bisector_plane(Vec3<T> r, T r2) {
   return {{-r.x, -r.y, -r.z}, T(0.5) * r2};
 }
 
+// The power bisector of the seed (origin, weight w_seed) and a neighbour at r
+// (weight w_j): {y : |y|^2 - w_seed <= |y - r|^2 - w_j}, i.e. the bisector
+// moved by shift = w_seed - w_j along r. A shift below -r2 puts the seed
+// outside it (the seed then lies outside its own cell).
+template <typename T>
+TV_HD Plane<T> power_plane(Vec3<T> r, T r2, T shift) {
+  return {{-r.x, -r.y, -r.z}, T(0.5) * (r2 + shift)};
+}
+
+// The radius of security of a power cell (the 2021 successor of the paper):
+// a neighbour at distance d cuts a cell within radius R of the seed only if
+// d^2 - 2 R d < w_j - w_seed, so none farther than R + sqrt(R^2 + spread)
+// can, spread = (the largest weight) - w_seed >= 0. Equal weights: 2 R.
+template <typename T>
+TV_HD bool beyond_power_security_radius(T neighbor_dist2, T cell_radius2, T spread, T tolerance) {
+  const T slack = T(1) + T(64) * tolerance;
+  const T reach = sqrt_of(cell_radius2) + sqrt_of(cell_radius2 + spread);
+  return neighbor_dist2 > slack * reach * reach;
+}
+
 // Radius of security (paper §3.1): a neighbour farther than twice the cell's
 // radius cannot cut it, nor can any later (farther) neighbour.
 template <typename T>

@@ -217,9 +217,30 @@ struct HomogeneousSlots {
 template <int N>
 struct HomogeneousSlots<false, N> {};
 
+// What a power cell (kWeighted) keeps beside each bisector's neighbour: the
+// weight difference that moves its plane (power_plane) and the neighbour's
+// index (its face's target), and how far the largest weight exceeds the
+// seed's (its radius of security). Nothing for a Voronoi cell: an empty base.
+template <typename T, int N, bool kWeighted>
+struct PowerTerms {
+  TV_HD void move_terms(int /*to*/, int /*from*/) {}
+};
+template <typename T, int N>
+struct PowerTerms<T, N, true> {
+  T shift[N];        // w_seed - w_j of bisector q - kBoxPlanes
+  int32_t owner[N];  // j
+  T spread;          // (the largest weight) - w_seed, >= 0
+  TV_HD void move_terms(int to, int from) {
+    shift[to] = shift[from];
+    owner[to] = owner[from];
+  }
+};
+
 // kCompact: the triangles in CompactTriangles (float32, at most 32 planes).
-template <typename T, int MAX_PLANES, int MAX_TRIANGLES, bool kCompact = false>
-struct ConvexCell {
+// kWeighted: a power cell (clip_by_power_plane), whose planes are power
+// bisectors; it may be empty (kEmpty).
+template <typename T, int MAX_PLANES, int MAX_TRIANGLES, bool kCompact = false, bool kWeighted = false>
+struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   using Scalar = T;
   using Lanes = SingleLane;  // one thread computes the cell
   static constexpr bool kTetrahedronStart = true;  // init_tetrahedron (start_tetrahedron)
@@ -259,6 +280,7 @@ struct ConvexCell {
   TV_HD Plane<T> plane(int q) const {
     if (q < kBoxPlanes) return box_face[q];
     const Vec3<T> r = neighbor[q - kBoxPlanes];
+    if constexpr (kWeighted) return power_plane(r, squared_norm(r), this->shift[q - kBoxPlanes]);
     return bisector_plane(r, squared_norm(r));
   }
 
@@ -381,8 +403,68 @@ struct ConvexCell {
   // §3.3, Alg. 3). Returns false and sets `status` when the cell cannot be
   // represented (array overflow) or the predicates were inconsistent.
   TV_HD bool clip_by_bisector(Vec3<T> r) {
+    static_assert(!kWeighted, "a power cell clips by power planes");
     const T r2 = squared_norm(r);
-    const Plane<T> p = bisector_plane(r, r2);
+    return clip(r, r2, bisector_plane(r, r2), T(0), -1);
+  }
+
+  // A power cell's clip by the power bisector of the neighbour `owner` at r
+  // (power_plane: shift = w_seed - w_owner). False with status kEmpty when
+  // the plane removes every vertex.
+  TV_HD bool clip_by_power_plane(Vec3<T> r, T shift, int32_t owner) {
+    static_assert(kWeighted, "a Voronoi cell clips by bisectors");
+    const T r2 = squared_norm(r);
+    return clip(r, r2, power_plane(r, r2, shift), shift, owner);
+  }
+  // Whether no neighbour this far (or farther) can cut the power cell.
+  TV_HD bool power_security_radius_reached(T neighbor_dist2) const {
+    static_assert(kWeighted, "power cells only");
+    return beyond_power_security_radius(neighbor_dist2, radius2, this->spread, tolerance);
+  }
+  // A power cell's neighbour across plane q >= kBoxPlanes.
+  TV_HD int32_t owner_of(int q) const {
+    if constexpr (kWeighted) return this->owner[q - kBoxPlanes];
+    return -1;
+  }
+
+  // Volume, first moment and second moment (integral of |x|^2) of the cell,
+  // all relative to the seed, and the cancellation measure (CellMoments).
+  // A power cell integrates about the mean of its vertices (a point of the
+  // cell), not about its seed, which may lie far outside it: tetrahedra from
+  // there would cancel.
+  TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
+                       CellRounding<T>& rounding) const {
+    Vec3<T> origin = {T(0), T(0), T(0)};
+    if constexpr (kWeighted) {
+      for (int t = 0; t < num_triangles; ++t) origin = origin + triangle.position(t);
+      origin = (T(1) / T(num_triangles > 0 ? num_triangles : 1)) * origin;
+    }
+    CellMoments<T, kWeighted> moments = CellMoments<T, kWeighted>::zero();
+    for (int t = 0; t < num_triangles; ++t) {
+      const Corners corners = triangle.corners(t);
+      Vec3<T> position = triangle.position(t);
+      Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
+      if constexpr (kWeighted) {
+        position = position - origin;
+        for (int e = 0; e < 3; ++e) planes[e].offset += dot(planes[e].normal, origin);
+      }
+      moments.add_vertex(planes, {position, squared_norm(position)});
+    }
+    moments.finish(volume, first_moment, second_moment, rounding);
+    if constexpr (kWeighted) {  // back to moments about the seed
+      second_moment += T(2) * dot(origin, first_moment) + volume * squared_norm(origin);
+      first_moment = first_moment + volume * origin;
+    }
+  }
+
+ private:
+  // The clip by plane p, the bisector (power bisector) of the neighbour at r
+  // (r2 = |r|^2; shift and owner are kept by power cells).
+  TV_HD bool clip(Vec3<T> r, T r2, const Plane<T>& p, T shift, int32_t owner) {
+    if constexpr (!kWeighted) {
+      (void)shift;
+      (void)owner;
+    }
     // Vertices within the tolerance band of the plane are kept. If the removed
     // region is then not a disc (inconsistent predicates: vertices of nearly
     // parallel planes, computed with errors beyond the band), fail: a later
@@ -402,6 +484,13 @@ struct ConvexCell {
       }
     }
     if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
+    if constexpr (kWeighted) {
+      if (clipped.count() == num_triangles) {
+        num_triangles = 0;
+        radius2 = T(0);
+        return fail(kEmpty);
+      }
+    }
     if (num_planes == MAX_PLANES) compact_planes();
     if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
     if (!removed_boundary(clipped, next, on_boundary, boundary_length, start)) return fail(kBoundaryError);
@@ -409,6 +498,10 @@ struct ConvexCell {
     if (num_triangles - removed + boundary_length > MAX_TRIANGLES) return fail(kTooManyVertices);
     const int new_plane = num_planes++;
     neighbor[new_plane - kBoxPlanes] = r;
+    if constexpr (kWeighted) {
+      this->shift[new_plane - kBoxPlanes] = shift;
+      this->owner[new_plane - kBoxPlanes] = owner;
+    }
     // Close the hole with a fan of triangles (s, t, p) along the boundary
     // cycle, written into the removed triangles' slots first and appended
     // after the last one beyond that: no kept triangle moves. The order of
@@ -441,21 +534,6 @@ struct ConvexCell {
     return true;
   }
 
-  // Volume, first moment and second moment (integral of |x|^2) of the cell,
-  // all relative to the seed, and the cancellation measure (CellMoments).
-  TV_HD void integrate(T& volume, Vec3<T>& first_moment, T& second_moment,
-                       CellRounding<T>& rounding) const {
-    CellMoments<T> moments = CellMoments<T>::zero();
-    for (int t = 0; t < num_triangles; ++t) {
-      const Corners corners = triangle.corners(t);
-      const Vec3<T> position = triangle.position(t);
-      const Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
-      moments.add_vertex(planes, {position, squared_norm(position)});
-    }
-    moments.finish(volume, first_moment, second_moment, rounding);
-  }
-
- private:
   TV_HD bool fail(int8_t code) {
     status = code;
     return false;
@@ -634,6 +712,7 @@ struct ConvexCell {
     for (int q = kBoxPlanes; q < num_planes; ++q) {
       if (renumber[q] == kNone) continue;
       neighbor[live - kBoxPlanes] = neighbor[q - kBoxPlanes];
+      this->move_terms(live - kBoxPlanes, q - kBoxPlanes);
       renumber[q] = static_cast<Id>(live++);
     }
     for (int t = 0; t < num_triangles; ++t) {

@@ -16,6 +16,7 @@ enum CellStatus : int8_t {
   kBoundaryError = 4,              // inconsistent predicates: removed region not a disc
   kDuplicate = 5,                  // exact copy of a lower-index point: empty cell
   kIllConditioned = 6,             // integrals cancel beyond what the arithmetic resolves
+  kEmpty = 7,                      // a power cell that no point of space is nearest to (power_cell.h)
 };
 
 }  // namespace core

@@ -103,6 +103,44 @@ struct NeighborReader {
   }
 };
 
+// The outputs of a clipped cell (out.status as the clip left it): NaN for a
+// failure, else its integrals, unless they are not finite or cancel beyond
+// what T resolves for outputs of io_t (then kBoundaryError or
+// kIllConditioned, NaN outputs: never a silent success; the caller retries
+// in wider arithmetic). The centroid of an empty (zero-volume) cell is its seed.
+template <typename io_t, typename Cell, typename T>
+TV_HD void integrate_cell(Cell& cell, Vec3<T> seed, CellIntegrals<T>& out) {
+  out.radius = radius_bound(cell.largest_radius2());
+  const T nan = T(0) / T(0);
+  if (out.status != kSuccess) {
+    out.radius = float(nan);
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
+    return;
+  }
+  Vec3<T> first_moment;
+  CellRounding<T> rounding;
+  cell.integrate(out.volume, first_moment, out.second_moment, rounding);
+  const T sum = out.volume + out.second_moment + first_moment.x + first_moment.y + first_moment.z;
+  constexpr double limit = CancellationLimit<io_t, T>::value;
+  constexpr double condition_limit = ConditionLimit<io_t, T>::value;
+  bool ill_conditioned = false;  // NaN measures count as over the limits
+  if constexpr (limit > 0.0) ill_conditioned = !(rounding.unsigned_volume <= T(limit) * out.volume);
+  if constexpr (condition_limit > 0.0) {
+    ill_conditioned = ill_conditioned || !(rounding.conditioned_volume <= T(condition_limit) * out.volume);
+  }
+  if (!is_finite_value(sum) || ill_conditioned) {
+    out.status = is_finite_value(sum) ? kIllConditioned : kBoundaryError;
+    out.radius = float(nan);
+    out.volume = nan;
+    out.centroid = {nan, nan, nan};
+    out.second_moment = nan;
+    return;
+  }
+  out.centroid = out.volume > T(0) ? seed + (T(1) / out.volume) * first_moment : seed;
+}
+
 // `neighbors` lists k indices (the n-th at neighbors[n * stride]) sorted by
 // distance to the seed, padded with -1 when the batch element has fewer points. Coordinates are read as io_t
 // and computed in T (T may be wider, for the float64 recovery pass).
@@ -234,39 +272,7 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
     out.second_moment = T(0);
     return out;
   }
-  out.radius = radius_bound(cell.largest_radius2());
-  if (out.status != kSuccess) {
-    const T nan = T(0) / T(0);
-    out.radius = float(nan);
-    out.volume = nan;
-    out.centroid = {nan, nan, nan};
-    out.second_moment = nan;
-    return out;
-  }
-  Vec3<T> first_moment;
-  CellRounding<T> rounding;
-  cell.integrate(out.volume, first_moment, out.second_moment, rounding);
-  const T sum = out.volume + out.second_moment + first_moment.x + first_moment.y + first_moment.z;
-  constexpr double limit = CancellationLimit<io_t, T>::value;
-  constexpr double condition_limit = ConditionLimit<io_t, T>::value;
-  bool ill_conditioned = false;  // NaN measures count as over the limits
-  if constexpr (limit > 0.0) ill_conditioned = !(rounding.unsigned_volume <= T(limit) * out.volume);
-  if constexpr (condition_limit > 0.0) {
-    ill_conditioned = ill_conditioned || !(rounding.conditioned_volume <= T(condition_limit) * out.volume);
-  }
-  if (!is_finite_value(sum) || ill_conditioned) {
-    // NaN or Inf from a degenerate cell, or more cancellation than T
-    // resolves: never a silent success; the caller retries in wider arithmetic.
-    const T nan = T(0) / T(0);
-    out.status = is_finite_value(sum) ? kIllConditioned : kBoundaryError;
-    out.radius = float(nan);
-    out.volume = nan;
-    out.centroid = {nan, nan, nan};
-    out.second_moment = nan;
-    return out;
-  }
-  // The centroid of an empty (zero-volume) cell is its seed.
-  out.centroid = out.volume > T(0) ? seed + (T(1) / out.volume) * first_moment : seed;
+  integrate_cell<io_t>(cell, seed, out);
   return out;
 }
 

@@ -1,0 +1,286 @@
+// torchvor::power_cells and torchvor::power_faces, shared by the CPU and
+// CUDA backends: the cells of a power diagram (core/power_cell.h) for given
+// rows from given neighbour lists, one thread a cell, in float64 whatever
+// the points' dtype. torchvor/power.py fetches the lists (torchvor::knn),
+// retries the cells whose lists were too short (more neighbours) or whose
+// arrays overflowed (the next tier), and counts, then fills, the faces.
+#pragma once
+
+#include <ATen/ATen.h>
+
+#include <cstdint>
+#include <memory>
+#include <tuple>
+#include <type_traits>
+
+#include "../core/cell_faces.h"
+#include "../core/power_cell.h"
+#include "../core/status.h"
+
+namespace torchvor {
+namespace ops {
+
+// The planes (and twice as many vertices) a power cell may hold at each
+// tier; the tiers past kLastDevicePowerTier run on the host only, their
+// cells on the heap.
+constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096};
+constexpr int kLastDevicePowerTier = 1;
+constexpr int kLastPowerTier = 3;
+
+// Relative tolerance of a power cell's clipping predicate (float64 cells).
+constexpr double kPowerTolerance = core::ClipTolerance<double>::value;
+
+template <int kPlanes>
+using PowerCell = core::ConvexCell<double, kPlanes, 2 * kPlanes, false, true>;
+
+// Cell m of `rows`: its integrals, status, neighbours used, radius and face
+// count (neighbour faces and wall faces); with kFaces, also its faces from
+// face_offsets[m] on (target: the neighbour's index, or -1 - wall for the
+// box walls -x, +x, -y, +y, -z, +z; area; centroid; inertia, the integral
+// over the face of |y - centroid|^2: the weights' gradients' term).
+template <typename io_t, int kPlanes, bool kFaces>
+struct PowerCellFunctor {
+  const io_t* points;         // (N, 3)
+  const io_t* weights;        // (N,)
+  const io_t* box;            // (B, 2, 3)
+  const int64_t* batch;       // (N,) or nullptr (one box)
+  const int64_t* rows;        // (M,)
+  const int64_t* neighbors;   // (M, k)
+  int64_t k;
+  const double* weight_max;   // (B,)
+  io_t* volume;               // (M,)
+  io_t* centroid;             // (M, 3)
+  io_t* second_moment;        // (M,)
+  int8_t* status;             // (M,)
+  int32_t* needed;            // (M,)
+  float* radius;              // (M,)
+  int32_t* face_count;        // (M,)
+  const int64_t* face_offsets;  // kFaces: (M + 1,)
+  int64_t* face_target;         // kFaces: (F,)
+  io_t* face_area;              // kFaces: (F,)
+  io_t* face_centroid;          // kFaces: (F, 3)
+  io_t* face_inertia;           // kFaces: (F,)
+
+  using Cell = PowerCell<kPlanes>;
+  static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
+
+  TV_HD void operator()(int64_t m) const {
+    if constexpr (kOnHeap) {
+#if !defined(__CUDA_ARCH__)
+      const auto cell = std::make_unique<Cell>();
+      run(*cell, m);
+#endif
+    } else {
+      Cell cell;
+      run(cell, m);
+    }
+  }
+
+  TV_HD void run(Cell& cell, int64_t m) const {
+    const int64_t seed = rows[m];
+    const int64_t b = batch != nullptr ? batch[seed] : 0;
+    const core::CellIntegrals<double> out = core::compute_power_cell<io_t>(
+        cell, points, weights, seed, neighbors + m * k, k, box + 6 * b, weight_max[b], kPowerTolerance);
+    volume[m] = io_t(out.volume);
+    centroid[3 * m] = io_t(out.centroid.x);
+    centroid[3 * m + 1] = io_t(out.centroid.y);
+    centroid[3 * m + 2] = io_t(out.centroid.z);
+    second_moment[m] = io_t(out.second_moment);
+    status[m] = out.status;
+    needed[m] = out.neighbors;
+    radius[m] = out.radius;
+    int32_t faces = 0;
+    if (out.status == core::kSuccess) {
+      const core::Vec3<double> at = {double(points[3 * seed]), double(points[3 * seed + 1]),
+                                     double(points[3 * seed + 2])};
+      const auto target_of = [&](int q, const core::Plane<double>&) -> int32_t {
+        return q < core::kBoxPlanes ? core::wall_target(q) : cell.owner_of(q);
+      };
+      const auto emit = [&](int, int32_t target, const core::Face<double>& face) {
+        if constexpr (kFaces) {
+          const int64_t f = face_offsets[m] + faces;
+          face_target[f] = target;
+          face_area[f] = io_t(face.area);
+          face_centroid[3 * f] = io_t(at.x + face.centroid.x);
+          face_centroid[3 * f + 1] = io_t(at.y + face.centroid.y);
+          face_centroid[3 * f + 2] = io_t(at.z + face.centroid.z);
+          face_inertia[f] = io_t(face.second[0] + face.second[1] + face.second[2]);
+        }
+        ++faces;
+      };
+      core::for_each_face<kFaces>(cell, target_of, emit);
+    }
+    face_count[m] = faces;
+  }
+};
+
+// The arguments both ops take, checked.
+inline void check_power_inputs(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
+                               const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
+                               const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier) {
+  TORCH_CHECK_TYPE(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
+                   "torchvor.power_cells: points must be float32 or float64, got ", points.scalar_type());
+  TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) == 3, "torchvor.power_cells: points must be (N, 3), got ",
+                    points.sizes());
+  TORCH_CHECK_TYPE(weights.scalar_type() == points.scalar_type() && box.scalar_type() == points.scalar_type(),
+                   "torchvor.power_cells: weights and box must have the points' dtype");
+  TORCH_CHECK_VALUE(weights.dim() == 1 && weights.size(0) == points.size(0),
+                    "torchvor.power_cells: weights must be (N,), got ", weights.sizes());
+  TORCH_CHECK_VALUE(box.dim() == 3 && box.size(1) == 2 && box.size(2) == 3 && box.size(0) >= 1,
+                    "torchvor.power_cells: box must be (B, 2, 3), got ", box.sizes());
+  TORCH_CHECK_TYPE(rows.scalar_type() == at::kLong && neighbors.scalar_type() == at::kLong,
+                   "torchvor.power_cells: rows and neighbors must be int64");
+  TORCH_CHECK_VALUE(rows.dim() == 1 && neighbors.dim() == 2 && neighbors.size(0) == rows.size(0),
+                    "torchvor.power_cells: rows must be (M,) and neighbors (M, k), got ", rows.sizes(), " and ",
+                    neighbors.sizes());
+  TORCH_CHECK_TYPE(weight_max.scalar_type() == at::kDouble, "torchvor.power_cells: weight_max must be float64");
+  TORCH_CHECK_VALUE(weight_max.dim() == 1 && weight_max.size(0) == box.size(0),
+                    "torchvor.power_cells: weight_max must be (B,), one per box");
+  if (batch.has_value()) {
+    TORCH_CHECK_VALUE(batch->scalar_type() == at::kLong && batch->dim() == 1 && batch->size(0) == points.size(0),
+                      "torchvor.power_cells: batch must be (N,) int64");
+  } else {
+    TORCH_CHECK_VALUE(box.size(0) == 1, "torchvor.power_cells: several boxes need a batch");
+  }
+  TORCH_CHECK_VALUE(tier >= 0 && tier <= kLastPowerTier, "torchvor.power_cells: tier must be in [0, ",
+                    kLastPowerTier, "], got ", tier);
+  for (const at::Tensor* t : {&weights, &box, &rows, &neighbors, &weight_max}) {
+    TORCH_CHECK_VALUE(t->device() == points.device(), "torchvor.power_cells: every tensor must be on the points' device");
+  }
+  if (batch.has_value()) {
+    TORCH_CHECK_VALUE(batch->device() == points.device(), "torchvor.power_cells: every tensor must be on the points' device");
+  }
+}
+
+// volume (M,), centroid (M, 3), second_moment (M,), status (M,) int8,
+// neighbors_needed (M,) int32, radius (M,) float32, face_count (M,) int32.
+using PowerCellOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+// face_target (F,) int64, face_area (F,), face_centroid (F, 3), face_inertia (F,).
+using PowerFaceOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+
+// Runs the functor of the pass's tier over the rows (`Exec` the backend;
+// the host tiers run on Exec::HostExec, with the tensors on the host).
+template <typename Exec, typename io_t, bool kFaces>
+void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> base) {
+  const auto run = [&](auto planes) {
+    constexpr int kPlanes = decltype(planes)::value;
+    PowerCellFunctor<io_t, kPlanes, kFaces> functor;
+    functor.points = base.points;
+    functor.weights = base.weights;
+    functor.box = base.box;
+    functor.batch = base.batch;
+    functor.rows = base.rows;
+    functor.neighbors = base.neighbors;
+    functor.k = base.k;
+    functor.weight_max = base.weight_max;
+    functor.volume = base.volume;
+    functor.centroid = base.centroid;
+    functor.second_moment = base.second_moment;
+    functor.status = base.status;
+    functor.needed = base.needed;
+    functor.radius = base.radius;
+    functor.face_count = base.face_count;
+    functor.face_offsets = base.face_offsets;
+    functor.face_target = base.face_target;
+    functor.face_area = base.face_area;
+    functor.face_centroid = base.face_centroid;
+    functor.face_inertia = base.face_inertia;
+    if constexpr (kPlanes > kPowerTierPlanes[kLastDevicePowerTier]) {
+      Exec::HostExec::for_each(m, functor);
+    } else {
+      Exec::for_each(m, functor);
+    }
+  };
+  switch (tier) {
+    case 0: run(std::integral_constant<int, kPowerTierPlanes[0]>()); break;
+    case 1: run(std::integral_constant<int, kPowerTierPlanes[1]>()); break;
+    case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>()); break;
+    default: run(std::integral_constant<int, kPowerTierPlanes[3]>()); break;
+  }
+}
+
+// The shared body of both ops: with face_offsets, fills the faces too.
+template <typename Exec, bool kFaces>
+std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
+    const at::Tensor& points_in, const at::Tensor& weights_in, const at::Tensor& box_in,
+    const c10::optional<at::Tensor>& batch_in, const at::Tensor& rows_in, const at::Tensor& neighbors_in,
+    const at::Tensor& weight_max_in, int64_t tier, const at::Tensor& face_offsets_in) {
+  check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, neighbors_in, weight_max_in, tier);
+  // The host tiers run on the host: their tensors go there (and back).
+  const bool on_host = tier > kLastDevicePowerTier && !points_in.device().is_cpu();
+  const auto here = [&](const at::Tensor& t) { return (on_host ? t.cpu() : t).contiguous(); };
+  const at::Tensor points = here(points_in), weights = here(weights_in), box = here(box_in);
+  const at::Tensor rows = here(rows_in), neighbors = here(neighbors_in), weight_max = here(weight_max_in);
+  const c10::optional<at::Tensor> batch = batch_in.has_value() ? c10::optional<at::Tensor>(here(*batch_in)) : c10::nullopt;
+  const int64_t m = rows.size(0);
+  const at::TensorOptions options = points.options();
+  at::Tensor volume = at::full({m}, NAN, options);
+  at::Tensor centroid = at::full({m, 3}, NAN, options);
+  at::Tensor second_moment = at::full({m}, NAN, options);
+  at::Tensor status = at::full({m}, int(core::kNotComputed), options.dtype(at::kChar));
+  at::Tensor needed = at::zeros({m}, options.dtype(at::kInt));
+  at::Tensor radius = at::full({m}, NAN, options.dtype(at::kFloat));
+  at::Tensor face_count = at::zeros({m}, options.dtype(at::kInt));
+  at::Tensor face_offsets, face_target, face_area, face_centroid, face_inertia;
+  int64_t faces = 0;
+  if constexpr (kFaces) {
+    face_offsets = here(face_offsets_in);
+    TORCH_CHECK_VALUE(face_offsets.scalar_type() == at::kLong && face_offsets.dim() == 1 && face_offsets.size(0) == m + 1,
+                      "torchvor.power_faces: face_offsets must be (M + 1,) int64");
+    faces = face_offsets[m].item<int64_t>();
+    TORCH_CHECK_VALUE(faces >= 0, "torchvor.power_faces: face_offsets must end at the face count");
+  }
+  face_target = at::full({faces}, int64_t(-7), options.dtype(at::kLong));
+  face_area = at::full({faces}, NAN, options);
+  face_centroid = at::full({faces, 3}, NAN, options);
+  face_inertia = at::full({faces}, NAN, options);
+  if (m > 0) {
+    AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "power_cells", [&] {
+      PowerCellFunctor<scalar_t, 64, kFaces> functor;
+      functor.points = points.data_ptr<scalar_t>();
+      functor.weights = weights.data_ptr<scalar_t>();
+      functor.box = box.data_ptr<scalar_t>();
+      functor.batch = batch.has_value() ? batch->data_ptr<int64_t>() : nullptr;
+      functor.rows = rows.data_ptr<int64_t>();
+      functor.neighbors = neighbors.data_ptr<int64_t>();
+      functor.k = neighbors.size(1);
+      functor.weight_max = weight_max.data_ptr<double>();
+      functor.volume = volume.data_ptr<scalar_t>();
+      functor.centroid = centroid.data_ptr<scalar_t>();
+      functor.second_moment = second_moment.data_ptr<scalar_t>();
+      functor.status = status.data_ptr<int8_t>();
+      functor.needed = needed.data_ptr<int32_t>();
+      functor.radius = radius.data_ptr<float>();
+      functor.face_count = face_count.data_ptr<int32_t>();
+      functor.face_offsets = kFaces ? face_offsets.data_ptr<int64_t>() : nullptr;
+      functor.face_target = face_target.data_ptr<int64_t>();
+      functor.face_area = face_area.data_ptr<scalar_t>();
+      functor.face_centroid = face_centroid.data_ptr<scalar_t>();
+      functor.face_inertia = face_inertia.data_ptr<scalar_t>();
+      run_power_tier<Exec, scalar_t, kFaces>(tier, m, functor);
+    });
+  }
+  const auto back = [&](const at::Tensor& t) { return on_host ? t.to(points_in.device()) : t; };
+  return {PowerCellOutputs{back(volume), back(centroid), back(second_moment), back(status), back(needed), back(radius),
+                           back(face_count)},
+          PowerFaceOutputs{back(face_target), back(face_area), back(face_centroid), back(face_inertia)}};
+}
+
+template <typename Exec>
+PowerCellOutputs power_cells(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
+                             const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
+                             const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier) {
+  return std::get<0>(power_forward<Exec, false>(points, weights, box, batch, rows, neighbors, weight_max, tier, {}));
+}
+
+template <typename Exec>
+PowerFaceOutputs power_faces(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
+                             const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
+                             const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier,
+                             const at::Tensor& face_offsets) {
+  return std::get<1>(power_forward<Exec, true>(points, weights, box, batch, rows, neighbors, weight_max, tier,
+                                              face_offsets));
+}
+
+}  // namespace ops
+}  // namespace torchvor

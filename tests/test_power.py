@@ -1,0 +1,281 @@
+"""Power (Laguerre) diagrams: torchvor.voronoi / voronoi_graph / voronoi_laplacian
+with weights, and torchvor.power_weights, against the half-space oracle with
+power bisectors (oracles.voronoi_cell_oracle with weights)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchvor
+from torchvor import CellStatus
+from oracles import voronoi_cell_oracle
+
+BOX = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+
+
+def _cloud(n, gen, dtype, device):
+    return torch.rand(n, 3, generator=gen, dtype=torch.float64).to(dtype=dtype, device=device)
+
+
+def _weights(n, spread, gen, dtype, device):
+    """Weights uniform in [0, spread * s^2], s the mean spacing of n points in the unit cube."""
+    scale = spread * n ** (-2.0 / 3.0)
+    return (torch.rand(n, generator=gen, dtype=torch.float64) * scale).to(dtype=dtype, device=device)
+
+
+@pytest.mark.parametrize("shift", [0.0, 3.5])
+def test_equal_weights_give_the_voronoi_cells(device, dtype, gen, shift):
+    points = _cloud(500, gen, dtype, device)
+    plain = torchvor.voronoi(points.double(), BOX)
+    power = torchvor.voronoi(points, BOX, weights=torch.full((500,), shift, dtype=dtype, device=device))
+    assert bool((power.status == CellStatus.SUCCESS).all())
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    torch.testing.assert_close(power.volume.double(), plain.volume, atol=tol, rtol=tol)
+    torch.testing.assert_close(power.centroid.double(), plain.centroid, atol=tol, rtol=tol)
+    torch.testing.assert_close(power.second_moment.double(), plain.second_moment, atol=tol, rtol=tol)
+
+
+@pytest.mark.parametrize("spread", [0.3, 3.0])
+def test_power_cells_match_the_oracle(device, gen, spread):
+    """Every cell of 300 points against the float64 half-space oracle; spread
+    3 empties many cells and moves others away from their points."""
+    n = 300
+    points = _cloud(n, gen, torch.float64, device)
+    weights = _weights(n, spread, gen, torch.float64, device)
+    cells = torchvor.voronoi(points, BOX, weights=weights, k=8)  # k=8: most cells retry with longer lists
+    pts, w = points.cpu().numpy(), weights.cpu().numpy()
+    box = (np.zeros(3), np.ones(3))
+    status = cells.status.cpu().numpy()
+    volume, centroid, second = (t.cpu().numpy() for t in (cells.volume, cells.centroid, cells.second_moment))
+    for i in range(n):
+        oracle = voronoi_cell_oracle(pts, i, box, weights=w)
+        if oracle.empty or oracle.volume < 1e-13:
+            assert status[i] == CellStatus.EMPTY or abs(volume[i]) < 1e-12, (i, status[i], volume[i])
+            continue
+        assert status[i] == CellStatus.SUCCESS, (i, status[i])
+        assert abs(volume[i] - oracle.volume) <= 1e-9 * max(oracle.volume, 1e-6), (i, volume[i], oracle.volume)
+        assert np.abs(centroid[i] - oracle.centroid).max() <= 1e-8, i
+        assert abs(second[i] - oracle.second_moment) <= 1e-9 * max(oracle.second_moment, 1e-8), i
+    assert abs(float(cells.volume.sum()) - 1.0) < 1e-12
+    if spread == 3.0:
+        assert int((cells.status == CellStatus.EMPTY).sum()) > 0
+        empty = cells.status == CellStatus.EMPTY
+        assert bool((cells.volume[empty] == 0).all())
+        torch.testing.assert_close(cells.centroid[empty], points[empty])
+
+
+def test_float32_points_are_computed_in_float64(device, gen):
+    points = _cloud(400, gen, torch.float32, device)
+    weights = _weights(400, 1.0, gen, torch.float32, device)
+    single = torchvor.voronoi(points, BOX, weights=weights)
+    double = torchvor.voronoi(points.double(), BOX, weights=weights.double())
+    assert single.volume.dtype == torch.float32
+    torch.testing.assert_close(single.volume, double.volume.float())
+    torch.testing.assert_close(single.status, double.status)
+
+
+def test_copies_of_a_point(device):
+    """A copy with a larger weight empties the cell; equal weights: the lower index keeps it."""
+    points = torch.tensor([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.2, 0.3, 0.4]],
+                          dtype=torch.float64, device=device)
+    weights = torch.tensor([0.0, 0.01, 0.01, 0.0], dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points, BOX, weights=weights)
+    assert cells.status.tolist() == [CellStatus.EMPTY, CellStatus.SUCCESS, CellStatus.DUPLICATE, CellStatus.SUCCESS]
+    assert cells.volume[0] == 0 and cells.volume[2] == 0
+    assert abs(float(cells.volume.sum()) - 1.0) < 1e-12
+
+
+def test_batches_are_separate_diagrams(device, gen):
+    points = _cloud(200, gen, torch.float64, device)
+    weights = _weights(200, 1.0, gen, torch.float64, device)
+    batch = torch.cat([torch.zeros(80, dtype=torch.int64), torch.ones(120, dtype=torch.int64)]).to(device)
+    boxes = torch.tensor([[[0.0, 0, 0], [1, 1, 1]], [[-1.0, 0, 0], [1, 2, 1]]], dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points, boxes, batch=batch, weights=weights)
+    first = torchvor.voronoi(points[:80], boxes[0], weights=weights[:80])
+    second = torchvor.voronoi(points[80:], boxes[1], weights=weights[80:])
+    torch.testing.assert_close(cells.volume, torch.cat([first.volume, second.volume]), rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(cells.centroid, torch.cat([first.centroid, second.centroid]), rtol=1e-12,
+                               atol=1e-14)
+
+
+def test_power_graph_faces_match_the_oracle(device, gen):
+    n = 120
+    points = _cloud(n, gen, torch.float64, device)
+    weights = _weights(n, 1.0, gen, torch.float64, device)
+    graph = torchvor.voronoi_graph(points, BOX, weights=weights)
+    source, target = graph.edge_index.cpu()
+    pts, w = points.cpu().numpy(), weights.cpu().numpy()
+    box = (np.zeros(3), np.ones(3))
+    area, centroid = graph.area.cpu().numpy(), graph.centroid.cpu().numpy()
+    wall_area = graph.wall_area.cpu().numpy()
+    for i in range(n):
+        oracle = voronoi_cell_oracle(pts, i, box, weights=w)
+        mine = {int(j): e for e, j in zip(torch.nonzero(target == i).flatten().tolist(), source[target == i].tolist())}
+        expected = {j: f for j, f in (oracle.faces or {}).items() if j >= 0 and f[0] > 1e-12}
+        assert set(expected) <= set(mine), (i, sorted(expected), sorted(mine))
+        for j, e in mine.items():
+            a, c = expected.get(j, (0.0, None))
+            assert abs(area[e] - a) <= 1e-9, (i, j, area[e], a)
+            if c is not None:
+                assert np.abs(centroid[e] - c).max() <= 1e-8
+        for wall in range(6):
+            a = (oracle.faces or {}).get(-1 - wall, (0.0, None))[0]
+            assert abs(wall_area[i, wall] - a) <= 1e-9
+    # every face both ways, sorted by cell then neighbour
+    key = target * n + source
+    assert bool((key[1:] > key[:-1]).all())
+    reverse = set(zip(target.tolist(), source.tolist()))
+    assert all((int(j), int(i)) in reverse for j, i in zip(source.tolist(), target.tolist()))
+
+
+def test_power_laplacian_rows_sum_to_zero(device, gen):
+    points = _cloud(200, gen, torch.float64, device)
+    weights = _weights(200, 1.0, gen, torch.float64, device)
+    lap = torchvor.voronoi_laplacian(points, BOX, weights=weights)
+    dense = lap.to_dense()
+    torch.testing.assert_close(dense.sum(1), torch.zeros(200, dtype=torch.float64, device=device), atol=1e-12,
+                               rtol=0)
+    torch.testing.assert_close(dense, dense.T)
+
+
+def test_gradients_in_the_weights(device):
+    """gradcheck of volume, centroid and second moment in the weights (small
+    moves: no face appears or vanishes). A fixed cloud: finite differences
+    across a face that appears would not match any gradient."""
+    n = 40
+    gen = torch.Generator().manual_seed(12)
+    points = _cloud(n, gen, torch.float64, device)
+    weights = _weights(n, 0.5, gen, torch.float64, device).requires_grad_()
+    assert bool((torchvor.voronoi(points, BOX, weights=weights.detach()).status == CellStatus.SUCCESS).all())
+
+    def outputs(w):
+        cells = torchvor.voronoi(points, BOX, weights=w)
+        return cells.volume, cells.centroid, cells.second_moment
+
+    assert torch.autograd.gradcheck(outputs, (weights,), eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+def test_gradients_in_the_points_raise(device, gen):
+    points = _cloud(30, gen, torch.float64, device).requires_grad_()
+    weights = torch.zeros(30, dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points, BOX, weights=weights)
+    with pytest.raises(RuntimeError, match="not yet in the points"):
+        cells.volume.sum().backward()
+
+
+@pytest.mark.parametrize("varying", [False, True])
+def test_power_weights_reach_the_target_volumes(device, dtype, gen, varying):
+    n = 1000
+    points = _cloud(n, gen, dtype, device)
+    volumes = None
+    if varying:
+        volumes = (1 + 2 * torch.rand(n, generator=gen, dtype=torch.float64)).to(dtype=dtype, device=device)
+    result = torchvor.power_weights(points, BOX, volumes=volumes, tol=1e-6)
+    assert result.error <= (1e-6 if dtype == torch.float64 else 1e-4) and result.iterations <= 20
+    assert result.weights.dtype == dtype and result.weights.shape == (n,)
+    target = (torch.full((n,), 1.0 / n, dtype=torch.float64) if volumes is None
+              else volumes.double().cpu() / float(volumes.double().sum()))
+    cells = torchvor.voronoi(points.double(), BOX, weights=result.weights.double())
+    error = ((cells.volume.cpu() - target).abs() / target).max()
+    assert abs(float(error) - result.error) <= 1e-3 * result.error + 1e-15
+    torch.testing.assert_close(result.cells.volume.cpu(), cells.volume.to(dtype).cpu(), rtol=1e-12, atol=0)
+
+
+def test_power_weights_errors(device):
+    points = torch.rand(50, 3, dtype=torch.float64, device=device)
+    with pytest.raises(ValueError, match="tol"):
+        torchvor.power_weights(points, BOX, tol=0)
+    with pytest.raises(ValueError, match="positive"):
+        torchvor.power_weights(points, BOX, volumes=-torch.ones(50, dtype=torch.float64, device=device))
+    copied = torch.cat([points, points[:1]])
+    with pytest.raises(ValueError, match="distinct"):
+        torchvor.power_weights(copied, BOX)
+    with pytest.warns(RuntimeWarning, match="not converged"):
+        result = torchvor.power_weights(points, BOX, max_iters=1, tol=1e-15)
+    assert result.iterations == 1
+
+
+def test_weights_argument_errors(device):
+    points = torch.rand(20, 3, dtype=torch.float64, device=device)
+    with pytest.raises(ValueError, match=r"shape \(20,\)"):
+        torchvor.voronoi(points, BOX, weights=torch.zeros(19, dtype=torch.float64, device=device))
+    with pytest.raises(TypeError, match="dtype"):
+        torchvor.voronoi(points, BOX, weights=torch.zeros(20, dtype=torch.float32, device=device))
+    with pytest.raises(ValueError, match="NaN"):
+        torchvor.voronoi(points, BOX, weights=torch.full((20,), math.nan, dtype=torch.float64, device=device))
+    with pytest.raises(TypeError, match="torch.Tensor"):
+        torchvor.voronoi(points, BOX, weights=[0.0] * 20)
+    with pytest.raises(NotImplementedError, match="periodic"):
+        torchvor.voronoi(points, BOX, weights=torch.zeros(20, dtype=torch.float64, device=device), periodic=True)
+    with pytest.raises(ValueError, match="inside"):
+        torchvor.voronoi(points + 2, BOX, weights=torch.zeros(20, dtype=torch.float64, device=device))
+
+
+def test_empty_input(device):
+    points = torch.empty(0, 3, dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points, BOX, weights=torch.empty(0, dtype=torch.float64, device=device))
+    assert cells.volume.shape == (0,)
+    result = torchvor.power_weights(points, BOX)
+    assert result.weights.shape == (0,) and result.iterations == 0
+
+
+def test_opcheck_power_ops(device, dtype, gen):
+    points = _cloud(30, gen, dtype, device)
+    weights = _weights(30, 1.0, gen, dtype, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
+    rows = torch.arange(30, device=device)
+    lists = torchvor.knn(points, 31, points, exclude_self=False).idx
+    weight_max = weights.double().max().reshape(1)
+    torch.library.opcheck(torch.ops.torchvor.power_cells.default,
+                          (points, weights, box, None, rows, lists, weight_max, 0))
+    counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, lists, weight_max, 0)[6]
+    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)]).long()
+    torch.library.opcheck(torch.ops.torchvor.power_faces.default,
+                          (points, weights, box, None, rows, lists, weight_max, 1, offsets))
+
+
+def test_larger_tiers_give_the_same_cells(device, gen):
+    """Tiers 0-3 (tiers 2-3 on the CPU, whatever the device) agree bit for bit."""
+    points = _cloud(60, gen, torch.float64, device)
+    weights = _weights(60, 1.0, gen, torch.float64, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
+    rows = torch.arange(60, device=device)
+    lists = torchvor.knn(points, 61, points, exclude_self=False).idx
+    weight_max = weights.max().reshape(1)
+    results = [torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, lists, weight_max, tier)
+               for tier in range(4)]
+    for other in results[1:]:
+        assert other[0].device == points.device
+        torch.testing.assert_close(other[0], results[0][0], rtol=0, atol=0)
+        torch.testing.assert_close(other[3], results[0][3], rtol=0, atol=0)
+
+
+def test_power_lloyd_keeps_the_volumes_and_relaxes(device):
+    """Capacity-constrained Lloyd: every cell keeps its target volume, the
+    points move to their power cells' centroids, and the CVT energy drops."""
+    gen = torch.Generator().manual_seed(3)
+    points = _cloud(300, gen, torch.float64, device)
+    moved, weights = torchvor.power_lloyd(points, BOX, iters=4)
+    assert moved.shape == points.shape and weights.shape == (300,)
+    assert bool(((moved >= 0) & (moved <= 1)).all())
+    cells = torchvor.voronoi(moved, BOX, weights=weights)
+    before = torchvor.voronoi(points, BOX).second_moment.sum()
+    after = torchvor.voronoi(moved, BOX).second_moment.sum()
+    assert float(after) < float(before)
+    # the last weights give the last points' (pre-move) cells the target volumes; moved
+    # points need new ones: solve again and check the capacity
+    solved = torchvor.power_weights(moved, BOX, weights=weights)
+    assert solved.error <= 1e-6 and solved.iterations <= 5
+    assert bool((cells.status == CellStatus.SUCCESS).all())
+
+
+def test_power_weights_warm_start(device):
+    gen = torch.Generator().manual_seed(4)
+    points = _cloud(500, gen, torch.float64, device)
+    first = torchvor.power_weights(points, BOX)
+    again = torchvor.power_weights(points, BOX, weights=first.weights + 0.25)
+    assert again.iterations == 0 and again.error <= 1e-6
+    torch.testing.assert_close(again.weights, first.weights, atol=1e-15, rtol=0)

@@ -1,0 +1,519 @@
+"""Power (Laguerre) diagrams, and the weights that give every cell a prescribed volume.
+
+The power cell of point i with weight w_i is the set of points y of its box
+with ``|y - x_i|^2 - w_i <= |y - x_j|^2 - w_j`` for every j. Equal weights
+give the Voronoi diagram. A cell may lie away from its point, or be empty.
+
+The cells come from ``torch.ops.torchvor.power_cells`` (csrc/ops/power.h):
+each cell is clipped from its point's nearest neighbours until the power
+radius of security proves it exact, in float64. This module fetches the
+neighbour lists (``torchvor::knn``), retries the cells whose lists were too
+short (twice as many neighbours, up to the whole cloud) or whose arrays
+overflowed (the next tier; the largest run on the CPU), and gathers the
+faces. :func:`power_weights` solves for the weights by damped Newton
+(Kitagawa, Merigot and Thibert 2019), with the power diagram's Laplacian
+as the Jacobian and conjugate gradients in torch.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional, Tuple
+
+import torch
+
+from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells, knn as _knn
+
+# Neighbours fetched per cell in the first pass when the caller gives no k.
+FIRST_K = 32
+# The power_cells tiers: planes a cell may hold (csrc/ops/power.h, kPowerTierPlanes).
+LAST_TIER = 3
+_RETRY_LIST = int(CellStatus.SECURITY_RADIUS_NOT_REACHED)
+_RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
+_EMPTY = int(CellStatus.EMPTY)
+
+
+class PowerFaces(NamedTuple):
+    """The faces of power cells, each cell's own (not symmetrised).
+
+    cell: (F,) int64 the cell's row; target: (F,) int64 the point across the
+    face, or -1 - wall (walls -x, +x, -y, +y, -z, +z); area: (F,); centroid:
+    (F, 3) absolute coordinates; inertia: (F,) the integral over the face of
+    ``|y - centroid|^2``.
+    """
+
+    cell: torch.Tensor
+    target: torch.Tensor
+    area: torch.Tensor
+    centroid: torch.Tensor
+    inertia: torch.Tensor
+
+
+def check_weights(points: torch.Tensor, weights, caller: str) -> torch.Tensor:
+    """``weights`` as a (N,) tensor of the points' dtype and device, finite."""
+    if not isinstance(weights, torch.Tensor):
+        raise TypeError(f"torchvor.{caller}: weights must be a torch.Tensor, got {type(weights).__name__}")
+    if weights.dtype != points.dtype:
+        raise TypeError(f"torchvor.{caller}: weights must have the points' dtype {points.dtype}, got {weights.dtype}")
+    if weights.device != points.device:
+        raise ValueError(f"torchvor.{caller}: weights must be on the points' device {points.device}, "
+                         f"got {weights.device}")
+    if weights.shape != (points.shape[0],):
+        raise ValueError(f"torchvor.{caller}: weights must have shape ({points.shape[0]},), one per point, "
+                         f"got {tuple(weights.shape)}")
+    if not bool(torch.isfinite(weights).all()):
+        raise ValueError(f"torchvor.{caller}: weights contain NaN or Inf")
+    return weights.contiguous()
+
+
+def check_inputs(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> None:
+    """The checks of torchvor.voronoi (shapes, dtypes, finite points inside a
+    box of positive extent, the batch vector), by its op on no rows."""
+    no_rows = torch.empty(0, dtype=torch.int64, device=points.device)
+    torch.ops.torchvor.voronoi_cells.default(points, box, batch, None, DEFAULT_MEMORY_BUDGET, no_rows)
+
+
+def _clouds(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]):
+    """(box (B, 2, 3) with a box per cloud, counts (B,) int64)."""
+    n = points.shape[0]
+    if batch is None:
+        return box.contiguous(), torch.tensor([n], device=points.device)
+    clouds = max(int(batch.max()) + 1 if n else 1, box.shape[0])
+    if box.shape[0] == 1 and clouds > 1:
+        box = box.expand(clouds, 2, 3)
+    return box.contiguous(), torch.bincount(batch, minlength=clouds)
+
+
+def _weight_max(weights: torch.Tensor, batch: Optional[torch.Tensor], clouds: int) -> torch.Tensor:
+    """(B,) float64: the largest weight of each cloud (0 for an empty one)."""
+    w = weights.double()
+    if batch is None:
+        return (w.max() if w.numel() else w.new_zeros(())).reshape(1)
+    top = torch.full((clouds,), -math.inf, dtype=torch.float64, device=w.device)
+    top = top.scatter_reduce(0, batch, w, "amax")
+    return torch.where(torch.isfinite(top), top, torch.zeros_like(top))
+
+
+def _lists(points, batch, chunk_rows, k):
+    """The k nearest points of each row's point (itself among them), -1 padded."""
+    query_batch = None if batch is None else batch[chunk_rows]
+    return _knn(points, k, points[chunk_rows], batch=batch, query_batch=query_batch, exclude_self=False).idx
+
+
+def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
+    size = max(1024, memory_budget // (16 * k))  # the lists' indices and distances
+    return rows.split(size)
+
+
+def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
+                k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
+                faces: bool = False) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
+    """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
+
+    Returns :class:`VoronoiCells` (status EMPTY for an empty cell) and, with
+    ``faces``, every computed cell's :class:`PowerFaces`. Not differentiable.
+    """
+    with torch.no_grad():
+        return _power_cells(points, weights, box, batch, k, memory_budget, faces)
+
+
+def _power_cells(points, weights, box, batch, k, memory_budget, faces):
+    n = points.shape[0]
+    device = points.device
+    box, counts = _clouds(points, box, batch)
+    weight_max = _weight_max(weights, batch, box.shape[0])
+    whole = int(counts.max()) + 1 if n else 1  # a list this long ends in padding: the whole cloud
+    volume = points.new_full((n,), math.nan)
+    centroid = points.new_full((n, 3), math.nan)
+    second = points.new_full((n,), math.nan)
+    status = torch.full((n,), int(CellStatus.NOT_COMPUTED), dtype=torch.int8, device=device)
+    needed = torch.zeros(n, dtype=torch.int32, device=device)
+    radius = torch.full((n,), math.nan, dtype=torch.float32, device=device)
+    face_count = torch.zeros(n, dtype=torch.int32, device=device)
+    first_k = min(max(int(k) if k is not None else FIRST_K, 1), whole)
+    row_k = torch.full((n,), first_k, dtype=torch.int64, device=device)
+    row_tier = torch.zeros(n, dtype=torch.int64, device=device)
+    pending = torch.arange(n, device=device)
+    while pending.numel():
+        pairs = torch.stack([row_k[pending], row_tier[pending]], 1)
+        retry = []
+        for pair in torch.unique(pairs, dim=0).tolist():
+            kk, tier = pair
+            group = pending[(pairs[:, 0] == kk) & (pairs[:, 1] == tier)]
+            for rows in _chunks(group, kk, memory_budget):
+                lists = _lists(points, batch, rows, kk)
+                out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, rows, lists, weight_max, tier)
+                for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
+                    target[rows] = value
+            code = status[group].long()
+            longer = (code == _RETRY_LIST) & (kk < whole)
+            larger = ((code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])) & (tier < LAST_TIER)
+            row_k[group[longer]] = min(2 * kk, whole)
+            row_tier[group[larger]] = tier + 1
+            retry.append(group[longer | larger])
+        pending = torch.cat(retry) if retry else pending[:0]
+    cells = VoronoiCells(volume, centroid, second, status, needed, radius)
+    if not faces:
+        return cells, None
+    return cells, _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget)
+
+
+def _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget) -> PowerFaces:
+    """The faces of the cells with faces, computed again at their last pass's k and tier."""
+    device = points.device
+    with_faces = torch.nonzero(face_count > 0).flatten()
+    parts = []
+    pairs = torch.stack([row_k[with_faces], row_tier[with_faces]], 1)
+    for kk, tier in torch.unique(pairs, dim=0).tolist():
+        group = with_faces[(pairs[:, 0] == kk) & (pairs[:, 1] == tier)]
+        for rows in _chunks(group, kk, memory_budget):
+            lists = _lists(points, batch, rows, kk)
+            counts = face_count[rows].long()
+            offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+            target, area, centroid, inertia = torch.ops.torchvor.power_faces.default(
+                points, weights, box, batch, rows, lists, weight_max, tier, offsets)
+            parts.append((rows.repeat_interleave(counts), target, area, centroid, inertia))
+    if not parts:
+        empty = torch.empty(0, dtype=torch.int64, device=device)
+        return PowerFaces(empty, empty, points.new_empty(0), points.new_empty(0, 3), points.new_empty(0))
+    return PowerFaces(*(torch.cat(column) for column in zip(*parts)))
+
+
+def graph_of_faces(n: int, faces: PowerFaces, dtype) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(edge_index (2, E), area (E,), centroid (E, 3), wall_area (N, 6)) as
+    voronoi_graph gives them: each face both ways with the mean of the two
+    cells' areas (centroids weighted by area), sorted by cell then neighbour."""
+    wall = faces.target < 0
+    wall_area = torch.zeros(n, 6, dtype=dtype, device=faces.area.device)
+    wall_area.index_put_((faces.cell[wall], -1 - faces.target[wall]), faces.area[wall], accumulate=True)
+    i, j = faces.cell[~wall], faces.target[~wall]
+    area, centroid = faces.area[~wall], faces.centroid[~wall]
+    low, high = torch.minimum(i, j), torch.maximum(i, j)
+    keys, inverse = torch.unique(low * n + high, return_inverse=True)
+    total = area.new_zeros(keys.numel()).index_add(0, inverse, area)
+    sides = area.new_zeros(keys.numel()).index_add(0, inverse, torch.ones_like(area))
+    moment = centroid.new_zeros(keys.numel(), 3).index_add(0, inverse, area.unsqueeze(1) * centroid)
+    mean_area = total / sides
+    mean_centroid = moment / total.clamp_min(torch.finfo(dtype).tiny).unsqueeze(1)
+    a, b = keys // n, keys % n
+    cell = torch.cat([a, b])
+    neighbor = torch.cat([b, a])
+    order = torch.argsort(cell * n + neighbor)
+    edge_index = torch.stack([neighbor[order], cell[order]])
+    return edge_index, mean_area.repeat(2)[order], mean_centroid.repeat(2, 1)[order], wall_area
+
+
+# ---- the cells as torchvor.voronoi returns them, differentiable in the weights ---------
+
+
+def _gradient_terms(points, faces: PowerFaces):
+    """Per neighbour face of a computed cell i with point j across: (i, j,
+    dV_i/dw_j, dM_i/dw_j (first moment), dS_i/dw_j (second moment)); the
+    derivatives in w_i are their negatives (a face moves along x_j - x_i by
+    (dw_i - dw_j) / (2 |x_j - x_i|))."""
+    keep = faces.target >= 0
+    i, j = faces.cell[keep], faces.target[keep]
+    area, centroid, inertia = faces.area[keep], faces.centroid[keep], faces.inertia[keep]
+    speed = 0.5 / (points[j] - points[i]).norm(dim=1)
+    d_volume = -speed * area
+    d_moment = d_volume.unsqueeze(1) * centroid
+    d_second = -speed * (area * (centroid - points[i]).square().sum(1) + inertia)
+    return i, j, d_volume, d_moment, d_second
+
+
+class _PowerCells(torch.autograd.Function):
+    """volume, centroid and second moment of the power cells, with their
+    gradients in the weights (not in the points: that backward raises)."""
+
+    @staticmethod
+    def forward(ctx, points, weights, box, batch, k, memory_budget):
+        cells, faces = power_cells(points, weights, box, batch, k, memory_budget, faces=weights.requires_grad)
+        ctx.mark_non_differentiable(cells.status, cells.neighbors_needed, cells.radius)
+        ctx.faces = faces
+        ctx.save_for_backward(points, cells.volume, cells.centroid)
+        return tuple(cells)
+
+    @staticmethod
+    def backward(ctx, grad_volume, grad_centroid, grad_second, *_):
+        if ctx.needs_input_grad[0]:
+            raise RuntimeError("torchvor.voronoi: power cells (weights=...) are differentiable in the weights, "
+                               "not yet in the points; detach the points")
+        points, volume, centroid = ctx.saved_tensors
+        if not ctx.needs_input_grad[1]:
+            return (None,) * 6
+        i, j, d_volume, d_moment, d_second = _gradient_terms(points, ctx.faces)
+        term = points.new_zeros(i.shape[0])
+        if grad_volume is not None:
+            term = term + grad_volume[i] * d_volume
+        if grad_centroid is not None:
+            # centroid = M / V: d centroid = (dM - centroid dV) / V
+            d_centroid = (d_moment - centroid[i] * d_volume.unsqueeze(1)) / volume[i].unsqueeze(1)
+            term = term + (grad_centroid[i] * d_centroid).sum(1)
+        if grad_second is not None:
+            term = term + grad_second[i] * d_second
+        term = torch.nan_to_num(term)  # a failed cell (NaN outputs) has no faces anyway
+        grad_weights = torch.zeros_like(volume).index_add(0, j, term).index_add(0, i, -term)
+        return None, grad_weights, None, None, None, None
+
+
+def voronoi(points, weights, box, batch, k, memory_budget) -> VoronoiCells:
+    """torchvor.voronoi with weights (checked): the power cells, differentiable in the weights."""
+    return VoronoiCells(*_PowerCells.apply(points, weights, box, batch, k, memory_budget))
+
+
+def voronoi_graph(points, weights, box, batch, k, memory_budget):
+    """torchvor.voronoi_graph with weights (checked): (cells, edge_index, area, centroid, wall_area)."""
+    with torch.no_grad():
+        cells, faces = power_cells(points, weights, box, batch, k, memory_budget, faces=True)
+    edge_index, area, centroid, wall_area = graph_of_faces(points.shape[0], faces, points.dtype)
+    return cells, edge_index, area, centroid, wall_area
+
+
+# ---- op registrations: fake kernels; the ops' own outputs are not differentiable --------
+
+
+@torch.library.register_fake("torchvor::power_cells")
+def _power_cells_fake(points, weights, box, batch, rows, neighbors, weight_max, tier):
+    m = rows.shape[0]
+    return (points.new_empty((m,)), points.new_empty((m, 3)), points.new_empty((m,)),
+            points.new_empty((m,), dtype=torch.int8), points.new_empty((m,), dtype=torch.int32),
+            points.new_empty((m,), dtype=torch.float32), points.new_empty((m,), dtype=torch.int32))
+
+
+@torch.library.register_fake("torchvor::power_faces")
+def _power_faces_fake(points, weights, box, batch, rows, neighbors, weight_max, tier, face_offsets):
+    f = torch.library.get_ctx().new_dynamic_size()
+    return (points.new_empty((f,), dtype=torch.int64), points.new_empty((f,)), points.new_empty((f, 3)),
+            points.new_empty((f,)))
+
+
+def _register_non_differentiable():
+    from .ops import _no_backward, _non_differentiable
+    for op in ("power_cells", "power_faces"):
+        torch.library.register_autograd(f"torchvor::{op}", _no_backward, setup_context=_non_differentiable)
+
+
+_register_non_differentiable()
+
+
+# ---- semi-discrete optimal transport: the weights of prescribed volumes -----------------
+
+
+class PowerWeights(NamedTuple):
+    """Result of :func:`power_weights`.
+
+    weights: (N,) the points' dtype: the power diagram with these weights
+        gives every cell its target volume (up to ``error``); their mean is 0
+        (adding a constant changes no cell).
+    iterations: Newton iterations taken.
+    error: the largest relative volume error, ``max |V_i - target_i| / target_i``.
+    cells: the :class:`VoronoiCells` (power cells) of the returned weights.
+    """
+
+    weights: torch.Tensor
+    iterations: int
+    error: float
+    cells: VoronoiCells
+
+
+def _laplacian_apply(edge_index, coefficient, x):
+    """(J x)_i = sum over faces (j, i) of c_ij (x_i - x_j): the Jacobian of the
+    volumes in the weights (d V_i / d w_j = -c_ij, c_ij = a_ij / (2 |x_i - x_j|))."""
+    j, i = edge_index
+    return torch.zeros_like(x).index_add(0, i, coefficient * (x[i] - x[j]))
+
+
+def _conjugate_gradient(edge_index, coefficient, diagonal, rhs, rtol: float, max_iters: int):
+    """J x = rhs (sum of rhs 0, J a graph Laplacian: x of mean 0) by CG with
+    the Jacobi preconditioner, to |r| <= rtol |rhs|."""
+    inverse = torch.where(diagonal > 0, 1.0 / diagonal, torch.zeros_like(diagonal))
+    x = torch.zeros_like(rhs)
+    r = rhs - rhs.mean()
+    z = inverse * r
+    p = z.clone()
+    rz = torch.dot(r, z)
+    stop = rtol * float(r.norm())
+    for _ in range(max_iters):
+        if float(r.norm()) <= stop:
+            break
+        q = _laplacian_apply(edge_index, coefficient, p)
+        alpha = rz / torch.dot(p, q)
+        x = x + alpha * p
+        r = r - alpha * q
+        z = inverse * r
+        rz_next = torch.dot(r, z)
+        p = z + (rz_next / rz) * p
+        rz = rz_next
+    return x - x.mean()
+
+
+def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Tensor] = None, tol: float = 1e-6,
+                  max_iters: int = 100, k: Optional[int] = None, progress: bool = False,
+                  memory_budget: int = DEFAULT_MEMORY_BUDGET, weights: Optional[torch.Tensor] = None) -> PowerWeights:
+    """Weights whose power diagram gives every cell a prescribed volume
+    (semi-discrete optimal transport of the uniform measure on the box to the
+    points).
+
+    Damped Newton (Kitagawa, Merigot and Thibert 2019): from zero weights
+    (the Voronoi diagram), each step solves ``J dw = target - V`` by
+    conjugate gradients, J the power diagram's Laplacian (``d V_i / d w_j =
+    -a_ij / (2 |x_i - x_j|)``, a_ij the face area), and halves the step until
+    no cell shrinks below half the smallest initial or target volume and the
+    largest volume error falls by at least a factor ``1 - step / 2``. The
+    cells are computed in float64.
+
+    Args:
+        points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``,
+            distinct (a copy of a point can get no volume of its own).
+        box: as :func:`torchvor.voronoi`.
+        volumes: (N,) positive target volumes in proportion (scaled to sum
+            to the box's volume), the points' dtype and device; default: all
+            equal.
+        tol: the largest relative volume error to reach, ``> 0``.
+        max_iters: Newton iterations at most; not converged then: a
+            RuntimeWarning, and the weights reached. Float32 weights are
+            the float64 solution rounded: their cells and ``error`` are those
+            of the rounded weights (the rounding can leave errors of a few
+            1e-6).
+        k: neighbours fetched per cell in the first pass (as :func:`voronoi`).
+        progress: print each iteration's error and step.
+        memory_budget: as :func:`torchvor.voronoi`.
+        weights: (N,) the weights to start from (default zeros: the Voronoi
+            diagram), e.g. the previous solution of points that moved a little.
+
+    Returns:
+        :class:`PowerWeights` ``(weights, iterations, error, cells)``.
+
+    Raises:
+        ValueError: bad shapes or values (as :func:`torchvor.voronoi`),
+            non-positive volumes or tol, duplicate points.
+        TypeError: mismatched dtypes.
+        RuntimeError: a cell that could not be computed.
+    """
+    import warnings
+
+    from .ops import _box_for_call, _check_tensor
+
+    _check_tensor(points, "points")
+    box_tensor = _box_for_call(points, box, None)
+    check_inputs(points, box_tensor, None)
+    if not (isinstance(tol, (int, float)) and tol > 0):
+        raise ValueError(f"torchvor.power_weights: tol must be a positive number, got {tol!r}")
+    if not (isinstance(max_iters, int) and max_iters >= 0):
+        raise ValueError(f"torchvor.power_weights: max_iters must be a non-negative int, got {max_iters!r}")
+    n = points.shape[0]
+    if box_tensor.shape[0] != 1:
+        raise ValueError("torchvor.power_weights: one box, (lo, hi) or (2, 3)")
+    lo, hi = box_tensor[0, 0].double(), box_tensor[0, 1].double()
+    box_volume = float((hi - lo).prod())
+    if volumes is None:
+        target = torch.full((n,), box_volume / max(n, 1), dtype=torch.float64, device=points.device)
+    else:
+        target = check_weights(points, volumes, "power_weights").double()
+        if n and not bool((target > 0).all()):
+            raise ValueError("torchvor.power_weights: volumes must be positive")
+        target = target * (box_volume / float(target.sum())) if n else target
+    work = points.double().contiguous()
+    box64 = box_tensor.double()
+    if weights is None:
+        weights = torch.zeros(n, dtype=torch.float64, device=points.device)
+    else:
+        weights = check_weights(points, weights, "power_weights").double()
+        weights = weights - weights.mean() if n else weights
+    if n == 0:
+        cells, _ = power_cells(points, weights.to(points.dtype), box_tensor, None, k, memory_budget)
+        return PowerWeights(weights.to(points.dtype), 0, 0.0, cells)
+
+    def evaluate(w, faces):
+        cells, found = power_cells(work, w, box64, None, k, memory_budget, faces=faces)
+        code = cells.status
+        failed = (code != int(CellStatus.SUCCESS)) & (code != _EMPTY)
+        if bool(failed.any()):
+            if bool((code == int(CellStatus.DUPLICATE)).any()):
+                raise ValueError("torchvor.power_weights: points must be distinct (exact copies found)")
+            first = int(torch.nonzero(failed)[0])
+            raise RuntimeError(f"torchvor.power_weights: the power cell of point {first} could not be computed "
+                               f"(status {CellStatus(int(code[first])).name})")
+        volume = torch.where(code == _EMPTY, torch.zeros_like(cells.volume), cells.volume)
+        return cells, found, volume
+
+    cells, faces, volume = evaluate(weights, True)
+    floor = 0.5 * min(float(volume.min()), float(target.min()))
+    error = float(((volume - target).abs() / target).max())
+    iterations = 0
+    while error > tol and iterations < max_iters:
+        iterations += 1
+        edge_index, area, _centroid, _walls = graph_of_faces(n, faces, torch.float64)
+        j, i = edge_index
+        coefficient = area / (2 * (work[i] - work[j]).norm(dim=1))
+        diagonal = torch.zeros(n, dtype=torch.float64, device=points.device).index_add(0, i, coefficient)
+        step = _conjugate_gradient(edge_index, coefficient, diagonal, target - volume, 1e-10, 10 * n + 100)
+        worst = float((volume - target).abs().max())
+        tau = 1.0
+        while True:
+            trial = weights + tau * step
+            trial_cells, trial_faces, trial_volume = evaluate(trial, True)
+            trial_worst = float((trial_volume - target).abs().max())
+            if float(trial_volume.min()) >= floor and trial_worst <= (1 - tau / 2) * worst:
+                break
+            tau /= 2
+            if tau < 1e-12:
+                raise RuntimeError("torchvor.power_weights: Newton's step found no descent (the cells are "
+                                   "ill-conditioned)")
+        weights = trial - trial.mean()
+        cells, faces, volume = trial_cells, trial_faces, trial_volume
+        error = float(((volume - target).abs() / target).max())
+        if progress:
+            print(f"power_weights: iteration {iterations}: error {error:.3e}, step {tau:g}")
+    if error > tol:
+        warnings.warn(f"torchvor.power_weights: not converged after {iterations} iterations "
+                      f"(error {error:.3e} > tol {tol:.1e})", RuntimeWarning, stacklevel=2)
+    result = weights.to(points.dtype)
+    if points.dtype != torch.float64:  # the cells and the error of the weights as rounded
+        cells, _, volume = evaluate(result.double(), False)
+        error = float(((volume - target).abs() / target).max())
+    result_cells = VoronoiCells(*(t.to(points.dtype) if t.dtype == torch.float64 else t for t in cells))
+    return PowerWeights(result, iterations, error, result_cells)
+
+
+def power_lloyd(points: torch.Tensor, box=None, iters: int = 10, *, volumes: Optional[torch.Tensor] = None,
+                tol: float = 1e-6, k: Optional[int] = None, progress: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Capacity-constrained Lloyd relaxation (de Goes et al. 2012, blue noise
+    through optimal transport): each iteration solves the weights that give
+    every cell its target volume (:func:`power_weights`, warm-started from the
+    previous ones), then moves every point to its power cell's centroid.
+
+    Args:
+        points: (N, 3) float32 or float64, distinct, inside ``box``. Not modified.
+        box: as :func:`torchvor.voronoi` (one box).
+        iters: iterations (>= 0).
+        volumes: (N,) target volumes in proportion (default: all equal).
+        tol: :func:`power_weights`' tolerance at each iteration.
+        k: as :func:`torchvor.voronoi`.
+        progress: print each iteration's Newton iterations and error.
+
+    Returns:
+        ``(points, weights)``: the moved points, (N, 3) in the input's dtype,
+        and the weights of their last power diagram (before the last move).
+    """
+    from .ops import _box_for_call, _check_tensor
+
+    _check_tensor(points, "points")
+    if not (isinstance(iters, int) and iters >= 0):
+        raise ValueError(f"torchvor.power_lloyd: iters must be a non-negative int, got {iters!r}")
+    box_tensor = _box_for_call(points, box, None)
+    check_inputs(points, box_tensor, None)
+    lo, hi = box_tensor[0, 0], box_tensor[0, 1]
+    current = points.detach().clone()
+    weights = None
+    for iteration in range(iters):
+        solved = power_weights(current, box_tensor[0], volumes=volumes, tol=tol, k=k, weights=weights)
+        weights = solved.weights
+        moved = solved.cells.centroid
+        if progress:
+            print(f"power_lloyd: iteration {iteration}: {solved.iterations} Newton iterations, "
+                  f"error {solved.error:.2e}")
+        # every cell holds its target volume (> 0), so every centroid is finite; clamp rounding
+        current = torch.minimum(torch.maximum(moved, lo), hi)
+    if weights is None:
+        weights = torch.zeros(points.shape[0], dtype=points.dtype, device=points.device)
+    return current, weights
