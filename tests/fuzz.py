@@ -45,7 +45,11 @@ is checked for:
 * for the same cases, the cells with the boxes periodic along some axes by
   turns (fuzz_periodic.py): every cell computed, each cloud's volumes summing
   to its box's, and PERIODIC_SAMPLE cells against the half-space oracle over
-  the points' images (periodic_certified).
+  the points' images (periodic_certified);
+* for the same cases, the power cells with weights of several scales
+  (fuzz_power.py): every cell computed or EMPTY, each cloud's volumes
+  summing to its box's, and POWER_SAMPLE cells against the half-space oracle
+  with power bisectors (power_certified).
 
 The oracle sees only the points near a cell: the nearest K of its cloud
 (cKDTree), K growing until the (K+1)-th lies beyond twice the radius of the
@@ -92,6 +96,7 @@ from torchvor import CellStatus  # noqa: E402
 
 import fuzz_graph  # noqa: E402
 import fuzz_periodic  # noqa: E402
+import fuzz_power  # noqa: E402
 import voronoi_checks  # noqa: E402
 from oracles import voronoi_cell_oracle  # noqa: E402
 
@@ -106,7 +111,7 @@ EXACT_MAX_FACETS = 40  # the exact oracle enumerates every triple of planes: its
 SLOWEST_CASES = 5  # the report lists the slowest cases (their time covers the checks too)
 COUNTERS = ("cases", "runs", "cells", "certified", "oracle_skipped", "failed_cells", "silently_wrong",
             "wrong_volume_sums", "unexpected_exceptions", "timeouts", "expected_errors", "second_moment_off",
-            "graphs", "faces_certified", "periodic_cells", "periodic_certified")
+            "graphs", "faces_certified", "periodic_cells", "periodic_certified", "power_cells", "power_certified")
 # any of these makes a campaign fail. second_moment_off (a cell whose volume and centroid are
 # within the guarantee, its second moment outside the same relative tolerance) is reported only.
 FAILURES = ("failed_cells", "silently_wrong", "wrong_volume_sums", "unexpected_exceptions", "timeouts")
@@ -500,6 +505,9 @@ class Campaign:
             self.current_impl = "periodic"
             with self.timed("periodic"):
                 fuzz_periodic.check_periodic(self, case, shared)
+            self.current_impl = "power"
+            with self.timed("power"):
+                fuzz_power.check_power(self, case, shared)
         seconds = time.perf_counter() - t0
         self.report.kind_seconds[case.kind] = self.report.kind_seconds.get(case.kind, 0.0) + seconds
         self.report.slowest.append({"seconds": round(seconds, 2), "case": case.describe(),

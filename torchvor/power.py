@@ -9,8 +9,9 @@ each cell is clipped from its point's nearest neighbours until the power
 radius of security proves it exact, in float64. This module fetches the
 neighbour lists (``torchvor::knn``), retries the cells whose lists were too
 short (twice as many neighbours, up to the whole cloud) or whose arrays
-overflowed (the next tier; the largest run on the CPU), and gathers the
-faces. :func:`power_weights` solves for the weights by damped Newton
+overflowed (the next tier; the largest run on the CPU) or whose float64
+arithmetic did not resolve them (double-double, on the CPU), and gathers
+the faces. :func:`power_weights` solves for the weights by damped Newton
 (Kitagawa, Merigot and Thibert 2019), with the power diagram's Laplacian
 as the Jacobian and conjugate gradients in torch.
 """
@@ -23,12 +24,19 @@ import torch
 
 from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells, knn as _knn
 
-# Neighbours fetched per cell in the first pass when the caller gives no k.
+# Neighbours fetched per cell in the first pass when the caller gives no k,
+# below PILOT_FROM cells; above, a pilot of about PILOT_CELLS cells (FIRST_K
+# up) sets it for the others.
 FIRST_K = 32
-# The power_cells tiers: planes a cell may hold (csrc/ops/power.h, kPowerTierPlanes).
-LAST_TIER = 3
+PILOT_FROM = 8192
+PILOT_CELLS = 1024
+# The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float64 cells of up
+# to 64, 160, 1024 and 4096 planes, then double-double ones of 4096.
+LAST_FLOAT64_TIER = 3
+DOUBLE_DOUBLE_TIER = 4
 _RETRY_LIST = int(CellStatus.SECURITY_RADIUS_NOT_REACHED)
 _RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
+_RETRY_WIDER = (int(CellStatus.ILL_CONDITIONED), int(CellStatus.BOUNDARY_ERROR))
 _EMPTY = int(CellStatus.EMPTY)
 
 
@@ -93,30 +101,59 @@ def _weight_max(weights: torch.Tensor, batch: Optional[torch.Tensor], clouds: in
     return torch.where(torch.isfinite(top), top, torch.zeros_like(top))
 
 
-def _lists(points, batch, chunk_rows, k):
-    """The k nearest points of each row's point (itself among them), -1 padded."""
+def _lists(points, batch, chunk_rows, k, cached: Optional[torch.Tensor] = None):
+    """The k nearest points of each row's point (itself among them), -1 padded:
+    the first k columns of `cached` (every row's list, longer) where it holds them."""
+    if cached is not None and cached.shape[1] >= k:
+        return cached[chunk_rows, :k]
     query_batch = None if batch is None else batch[chunk_rows]
     return _knn(points, k, points[chunk_rows], batch=batch, query_batch=query_batch, exclude_self=False).idx
 
 
+def every_list(points, batch, k: int, memory_budget: int) -> Optional[torch.Tensor]:
+    """(N, k) int64: every point's k nearest (itself among them), for calls
+    on the same points (power_weights' iterations); None above the memory budget."""
+    if points.shape[0] * k * 8 > memory_budget:
+        return None
+    rows = torch.arange(points.shape[0], device=points.device)
+    return torch.cat([_lists(points, batch, part, k) for part in _chunks(rows, k, memory_budget)])
+
+
 def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
-    size = max(1024, memory_budget // (16 * k))  # the lists' indices and distances
-    return rows.split(size)
+    """Rows in chunks whose lists (k indices and distances a row) fit the budget."""
+    return rows.split(max(1, memory_budget // (16 * k)))
 
 
 def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
                 k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
-                faces: bool = False) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
+                faces: bool = False, lists: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
     """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
+    ``lists``: every point's neighbour list (:func:`every_list`), to slice
+    instead of searching where it is long enough.
 
     Returns :class:`VoronoiCells` (status EMPTY for an empty cell) and, with
     ``faces``, every computed cell's :class:`PowerFaces`. Not differentiable.
     """
     with torch.no_grad():
-        return _power_cells(points, weights, box, batch, k, memory_budget, faces)
+        return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists)
 
 
-def _power_cells(points, weights, box, batch, k, memory_budget, faces):
+def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> torch.Tensor:
+    """The rows sorted by cloud, then by the cell of a grid of about 4 points a
+    cell over their box: nearby cells run side by side and read nearby
+    neighbours (the device's caches), and their lists are alike in length."""
+    n = points.shape[0]
+    g = max(1, round((n / 4) ** (1.0 / 3.0)))
+    corners = box[batch] if batch is not None else box[:1].expand(n, 2, 3)
+    lo, extent = corners[:, 0], (corners[:, 1] - corners[:, 0]).clamp_min(torch.finfo(points.dtype).tiny)
+    cell = ((points - lo) / extent * g).long().clamp(0, g - 1)
+    key = (cell[:, 0] * g + cell[:, 1]) * g + cell[:, 2]
+    if batch is not None:
+        key = key + batch * g ** 3
+    return torch.argsort(key)
+
+
+def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=None):
     n = points.shape[0]
     device = points.device
     box, counts = _clouds(points, box, batch)
@@ -129,44 +166,69 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces):
     needed = torch.zeros(n, dtype=torch.int32, device=device)
     radius = torch.full((n,), math.nan, dtype=torch.float32, device=device)
     face_count = torch.zeros(n, dtype=torch.int32, device=device)
-    first_k = min(max(int(k) if k is not None else FIRST_K, 1), whole)
-    row_k = torch.full((n,), first_k, dtype=torch.int64, device=device)
+    row_k = torch.zeros(n, dtype=torch.int64, device=device)
     row_tier = torch.zeros(n, dtype=torch.int64, device=device)
-    pending = torch.arange(n, device=device)
-    while pending.numel():
-        pairs = torch.stack([row_k[pending], row_tier[pending]], 1)
-        retry = []
-        for pair in torch.unique(pairs, dim=0).tolist():
-            kk, tier = pair
-            group = pending[(pairs[:, 0] == kk) & (pairs[:, 1] == tier)]
-            for rows in _chunks(group, kk, memory_budget):
-                lists = _lists(points, batch, rows, kk)
-                out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, rows, lists, weight_max, tier)
-                for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
-                    target[rows] = value
-            code = status[group].long()
-            longer = (code == _RETRY_LIST) & (kk < whole)
-            larger = ((code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])) & (tier < LAST_TIER)
-            row_k[group[longer]] = min(2 * kk, whole)
-            row_tier[group[larger]] = tier + 1
-            retry.append(group[longer | larger])
-        pending = torch.cat(retry) if retry else pending[:0]
+
+    def run(pending):
+        """Computes the cells of `pending` (at their row_k and row_tier) until
+        none asks for a retry."""
+        while pending.numel():
+            pass_key = row_k[pending] * (DOUBLE_DOUBLE_TIER + 1) + row_tier[pending]  # (k, tier) as one key
+            retry = []
+            for key in torch.unique(pass_key).tolist():
+                kk, tier = divmod(key, DOUBLE_DOUBLE_TIER + 1)
+                group = pending[pass_key == key]
+                for rows in _chunks(group, kk, memory_budget):
+                    lists = _lists(points, batch, rows, kk, cached)
+                    out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, rows, lists,
+                                                                 weight_max, tier)
+                    for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
+                        target[rows] = value
+                code = status[group].long()
+                longer = (code == _RETRY_LIST) & (kk < whole)
+                larger = ((code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])) & (tier < LAST_FLOAT64_TIER)
+                wider = ((code == _RETRY_WIDER[0]) | (code == _RETRY_WIDER[1])) & (tier < DOUBLE_DOUBLE_TIER)
+                row_k[group[longer]] = min(2 * kk, whole)
+                row_tier[group[larger]] = tier + 1
+                row_tier[group[wider]] = DOUBLE_DOUBLE_TIER
+                retry.append(group[longer | larger | wider])
+            pending = torch.cat(retry) if retry else pending[:0]
+
+    order = _spatial_order(points, box, batch) if n else torch.arange(0, device=device)
+    if k is not None:
+        first_k = min(max(int(k), 1), whole)
+    elif n > PILOT_FROM:
+        # A pilot: an evenly spread sample of the cells, from FIRST_K neighbours
+        # up; the rest start from what 98% of it needed (plus 2).
+        pilot = order[:: n // PILOT_CELLS]
+        row_k[pilot] = min(FIRST_K, whole)
+        run(pilot)
+        first_k = min(max(int(torch.quantile(needed[pilot].double(), 0.98)) + 2, 8), whole)
+        done = torch.zeros(n, dtype=torch.bool, device=device)
+        done[pilot] = True
+        order = order[~done[order]]
+    else:
+        first_k = min(FIRST_K, whole)
+    row_k[order] = first_k
+    run(order)
     cells = VoronoiCells(volume, centroid, second, status, needed, radius)
     if not faces:
         return cells, None
-    return cells, _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget)
+    return cells, _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget, cached)
 
 
-def _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget) -> PowerFaces:
+def _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget,
+           cached=None) -> PowerFaces:
     """The faces of the cells with faces, computed again at their last pass's k and tier."""
     device = points.device
     with_faces = torch.nonzero(face_count > 0).flatten()
     parts = []
-    pairs = torch.stack([row_k[with_faces], row_tier[with_faces]], 1)
-    for kk, tier in torch.unique(pairs, dim=0).tolist():
-        group = with_faces[(pairs[:, 0] == kk) & (pairs[:, 1] == tier)]
+    pass_key = row_k[with_faces] * (DOUBLE_DOUBLE_TIER + 1) + row_tier[with_faces]
+    for key in torch.unique(pass_key).tolist():
+        kk, tier = divmod(key, DOUBLE_DOUBLE_TIER + 1)
+        group = with_faces[pass_key == key]
         for rows in _chunks(group, kk, memory_budget):
-            lists = _lists(points, batch, rows, kk)
+            lists = _lists(points, batch, rows, kk, cached)
             counts = face_count[rows].long()
             offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
             target, area, centroid, inertia = torch.ops.torchvor.power_faces.default(
@@ -423,8 +485,17 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         cells, _ = power_cells(points, weights.to(points.dtype), box_tensor, None, k, memory_budget)
         return PowerWeights(weights.to(points.dtype), 0, 0.0, cells)
 
+    lists = None  # every point's list, as long as the cells so far needed (and a quarter more)
+    first_k = k  # then what 98% of the last cells needed (plus 2): no pilot
+
     def evaluate(w, faces):
-        cells, found = power_cells(work, w, box64, None, k, memory_budget, faces=faces)
+        nonlocal lists, first_k
+        cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists)
+        longest = min(int(cells.neighbors_needed.max()) + 1, n + 1)
+        if lists is None or lists.shape[1] < longest:
+            lists = every_list(work, None, min(longest * 5 // 4 + 8, n + 1), memory_budget)
+        if k is None:
+            first_k = int(torch.quantile(cells.neighbors_needed.double(), 0.98)) + 2
         code = cells.status
         failed = (code != int(CellStatus.SUCCESS)) & (code != _EMPTY)
         if bool(failed.any()):
@@ -446,7 +517,9 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         j, i = edge_index
         coefficient = area / (2 * (work[i] - work[j]).norm(dim=1))
         diagonal = torch.zeros(n, dtype=torch.float64, device=points.device).index_add(0, i, coefficient)
-        step = _conjugate_gradient(edge_index, coefficient, diagonal, target - volume, 1e-10, 10 * n + 100)
+        # inexact Newton: the step's residual need only fall with the error
+        step = _conjugate_gradient(edge_index, coefficient, diagonal, target - volume, min(1e-2, 0.1 * error),
+                                   10 * n + 100)
         worst = float((volume - target).abs().max())
         tau = 1.0
         while True:

@@ -250,7 +250,9 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   static constexpr Id kNone = static_cast<Id>(-1);
   // Double-double cells (the last resort, on the host) clip by exact
   // predicates (exact_predicates.h): their clips are never inconsistent.
-  static constexpr bool kExactPredicates = std::is_same<T, DoubleDouble>::value;
+  // Not power cells: the predicates take bisectors (a power cell in
+  // double-double decides by its arithmetic, 2^53 times finer than float64's).
+  static constexpr bool kExactPredicates = std::is_same<T, DoubleDouble>::value && !kWeighted;
   static_assert(MAX_PLANES <= kNone, "plane ids must stay below kNone");
   static_assert(!kCompact || (std::is_same<T, float>::value && MAX_PLANES <= 32),
                 "compact triangles hold float32 coordinates and 5-bit plane ids");
@@ -419,7 +421,12 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   // Whether no neighbour this far (or farther) can cut the power cell.
   TV_HD bool power_security_radius_reached(T neighbor_dist2) const {
     static_assert(kWeighted, "power cells only");
-    return beyond_power_security_radius(neighbor_dist2, radius2, this->spread, tolerance);
+    if constexpr (std::is_same<T, DoubleDouble>::value) {  // in double, with room for its rounding
+      return beyond_power_security_radius(static_cast<double>(neighbor_dist2), static_cast<double>(radius2),
+                                          static_cast<double>(this->spread), 1e-14);
+    } else {
+      return beyond_power_security_radius(neighbor_dist2, radius2, this->spread, tolerance);
+    }
   }
   // A power cell's neighbour across plane q >= kBoxPlanes.
   TV_HD int32_t owner_of(int q) const {

@@ -22,23 +22,23 @@ namespace ops {
 
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
-// cells on the heap.
-constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096};
+// cells on the heap. Tiers 0-3 compute in float64; the last one, for the
+// cells whose float64 integrals or clips the arithmetic does not resolve
+// (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
+constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096, 4096};
 constexpr int kLastDevicePowerTier = 1;
-constexpr int kLastPowerTier = 3;
+constexpr int kDoubleDoublePowerTier = 4;
+constexpr int kLastPowerTier = 4;
 
-// Relative tolerance of a power cell's clipping predicate (float64 cells).
-constexpr double kPowerTolerance = core::ClipTolerance<double>::value;
-
-template <int kPlanes>
-using PowerCell = core::ConvexCell<double, kPlanes, 2 * kPlanes, false, true>;
+template <int kPlanes, typename T>
+using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, false, true>;
 
 // Cell m of `rows`: its integrals, status, neighbours used, radius and face
 // count (neighbour faces and wall faces); with kFaces, also its faces from
 // face_offsets[m] on (target: the neighbour's index, or -1 - wall for the
 // box walls -x, +x, -y, +y, -z, +z; area; centroid; inertia, the integral
 // over the face of |y - centroid|^2: the weights' gradients' term).
-template <typename io_t, int kPlanes, bool kFaces>
+template <typename io_t, int kPlanes, bool kFaces, typename T = double>
 struct PowerCellFunctor {
   const io_t* points;         // (N, 3)
   const io_t* weights;        // (N,)
@@ -61,7 +61,7 @@ struct PowerCellFunctor {
   io_t* face_centroid;          // kFaces: (F, 3)
   io_t* face_inertia;           // kFaces: (F,)
 
-  using Cell = PowerCell<kPlanes>;
+  using Cell = PowerCell<kPlanes, T>;
   static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
 
   TV_HD void operator()(int64_t m) const {
@@ -79,8 +79,9 @@ struct PowerCellFunctor {
   TV_HD void run(Cell& cell, int64_t m) const {
     const int64_t seed = rows[m];
     const int64_t b = batch != nullptr ? batch[seed] : 0;
-    const core::CellIntegrals<double> out = core::compute_power_cell<io_t>(
-        cell, points, weights, seed, neighbors + m * k, k, box + 6 * b, weight_max[b], kPowerTolerance);
+    const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
+        cell, points, weights, seed, neighbors + m * k, k, box + 6 * b, T(weight_max[b]),
+        T(core::ClipTolerance<T>::value));
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
     centroid[3 * m + 1] = io_t(out.centroid.y);
@@ -93,17 +94,17 @@ struct PowerCellFunctor {
     if (out.status == core::kSuccess) {
       const core::Vec3<double> at = {double(points[3 * seed]), double(points[3 * seed + 1]),
                                      double(points[3 * seed + 2])};
-      const auto target_of = [&](int q, const core::Plane<double>&) -> int32_t {
+      const auto target_of = [&](int q, const core::Plane<T>&) -> int32_t {
         return q < core::kBoxPlanes ? core::wall_target(q) : cell.owner_of(q);
       };
-      const auto emit = [&](int, int32_t target, const core::Face<double>& face) {
+      const auto emit = [&](int, int32_t target, const core::Face<T>& face) {
         if constexpr (kFaces) {
           const int64_t f = face_offsets[m] + faces;
           face_target[f] = target;
           face_area[f] = io_t(face.area);
-          face_centroid[3 * f] = io_t(at.x + face.centroid.x);
-          face_centroid[3 * f + 1] = io_t(at.y + face.centroid.y);
-          face_centroid[3 * f + 2] = io_t(at.z + face.centroid.z);
+          face_centroid[3 * f] = io_t(at.x + double(face.centroid.x));
+          face_centroid[3 * f + 1] = io_t(at.y + double(face.centroid.y));
+          face_centroid[3 * f + 2] = io_t(at.z + double(face.centroid.z));
           face_inertia[f] = io_t(face.second[0] + face.second[1] + face.second[2]);
         }
         ++faces;
@@ -112,6 +113,12 @@ struct PowerCellFunctor {
     }
     face_count[m] = faces;
   }
+};
+
+// A cell scalar type as a value (run_power_tier).
+template <typename T>
+struct PowerScalar {
+  using type = T;
 };
 
 // The arguments both ops take, checked.
@@ -162,9 +169,9 @@ using PowerFaceOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tens
 // the host tiers run on Exec::HostExec, with the tensors on the host).
 template <typename Exec, typename io_t, bool kFaces>
 void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> base) {
-  const auto run = [&](auto planes) {
+  const auto run = [&](auto planes, auto scalar) {
     constexpr int kPlanes = decltype(planes)::value;
-    PowerCellFunctor<io_t, kPlanes, kFaces> functor;
+    PowerCellFunctor<io_t, kPlanes, kFaces, typename decltype(scalar)::type> functor;
     functor.points = base.points;
     functor.weights = base.weights;
     functor.box = base.box;
@@ -191,11 +198,16 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
       Exec::for_each(m, functor);
     }
   };
+  using Double = PowerScalar<double>;
   switch (tier) {
-    case 0: run(std::integral_constant<int, kPowerTierPlanes[0]>()); break;
-    case 1: run(std::integral_constant<int, kPowerTierPlanes[1]>()); break;
-    case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>()); break;
-    default: run(std::integral_constant<int, kPowerTierPlanes[3]>()); break;
+    case 0: run(std::integral_constant<int, kPowerTierPlanes[0]>(), Double()); break;
+    case 1: run(std::integral_constant<int, kPowerTierPlanes[1]>(), Double()); break;
+    case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>(), Double()); break;
+    case 3: run(std::integral_constant<int, kPowerTierPlanes[3]>(), Double()); break;
+    default:
+      run(std::integral_constant<int, kPowerTierPlanes[kDoubleDoublePowerTier]>(),
+          PowerScalar<core::DoubleDouble>());
+      break;
   }
 }
 
