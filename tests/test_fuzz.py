@@ -110,14 +110,15 @@ def test_cases_are_valid_inputs_in_their_dtype():
             assert np.all(case.points[members] >= lo) and np.all(case.points[members] <= hi), case.describe()
 
 
-def _corrupting(monkeypatch, change, periodic=False):
+def _corrupting(monkeypatch, change, periodic=False, power=False):
     """fuzz's torchvor.voronoi replaced by one whose result `change` edits
-    (the periodic calls' only with `periodic`, else the others')."""
+    (the periodic calls' only with `periodic`, the power calls' only with
+    `power`, else the others')."""
     real = torchvor.voronoi
 
     def voronoi(*args, **kwargs):
         cells = real(*args, **kwargs)
-        if bool(kwargs.get("periodic")) != periodic:
+        if bool(kwargs.get("periodic")) != periodic or (kwargs.get("weights") is not None) != power:
             return cells
         cells = torchvor.VoronoiCells(*(t.clone() for t in cells))
         change(cells)
@@ -161,6 +162,20 @@ def test_fuzzer_flags_a_silently_wrong_periodic_cell(monkeypatch):
     report = fuzz.run_campaign(CI_SEED, [index], max_n=CI_MAX_N)
     assert report.counts["wrong_volume_sums"] == 1 and report.counts["silently_wrong"] >= 1
     assert any(p.cells_impl == "periodic" for p in report.problems) and not report.ok()
+
+
+def test_fuzzer_flags_a_silently_wrong_power_cell(monkeypatch):
+    """A power cell's volume 1e-5 too large: the volume sum and, where the
+    oracle samples it, the oracle with power bisectors catch it."""
+    index = _white_noise_case()
+
+    def change(cells):
+        cells.volume[:] *= 1 + 1e-5
+
+    _corrupting(monkeypatch, change, power=True)
+    report = fuzz.run_campaign(CI_SEED, [index], max_n=CI_MAX_N)
+    assert report.counts["wrong_volume_sums"] == 1 and report.counts["silently_wrong"] >= 1
+    assert any(p.cells_impl == "power" for p in report.problems) and not report.ok()
 
 
 def test_fuzzer_checks_float32_suspects(monkeypatch):

@@ -31,9 +31,11 @@ FIRST_K = 32
 PILOT_FROM = 8192
 PILOT_CELLS = 1024
 # The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float64 cells of up
-# to 64, 160, 1024 and 4096 planes, then double-double ones of 4096.
-LAST_FLOAT64_TIER = 3
-DOUBLE_DOUBLE_TIER = 4
+# to 64, 160, 1024, 4096 and 16384 planes, then double-double ones of 4096 and
+# 16384 (for cells from tier 4).
+LAST_FLOAT64_TIER = 4
+DOUBLE_DOUBLE_TIER = 5
+LAST_TIER = 6
 _RETRY_LIST = int(CellStatus.SECURITY_RADIUS_NOT_REACHED)
 _RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
 _RETRY_WIDER = (int(CellStatus.ILL_CONDITIONED), int(CellStatus.BOUNDARY_ERROR))
@@ -173,10 +175,10 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
         """Computes the cells of `pending` (at their row_k and row_tier) until
         none asks for a retry."""
         while pending.numel():
-            pass_key = row_k[pending] * (DOUBLE_DOUBLE_TIER + 1) + row_tier[pending]  # (k, tier) as one key
+            pass_key = row_k[pending] * (LAST_TIER + 1) + row_tier[pending]  # (k, tier) as one key
             retry = []
             for key in torch.unique(pass_key).tolist():
-                kk, tier = divmod(key, DOUBLE_DOUBLE_TIER + 1)
+                kk, tier = divmod(key, LAST_TIER + 1)
                 group = pending[pass_key == key]
                 for rows in _chunks(group, kk, memory_budget):
                     lists = _lists(points, batch, rows, kk, cached)
@@ -186,11 +188,12 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
                         target[rows] = value
                 code = status[group].long()
                 longer = (code == _RETRY_LIST) & (kk < whole)
-                larger = ((code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])) & (tier < LAST_FLOAT64_TIER)
+                overflow = (code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])
+                larger = overflow & ((tier < LAST_FLOAT64_TIER) | (tier == DOUBLE_DOUBLE_TIER))
                 wider = ((code == _RETRY_WIDER[0]) | (code == _RETRY_WIDER[1])) & (tier < DOUBLE_DOUBLE_TIER)
                 row_k[group[longer]] = min(2 * kk, whole)
                 row_tier[group[larger]] = tier + 1
-                row_tier[group[wider]] = DOUBLE_DOUBLE_TIER
+                row_tier[group[wider]] = DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER)
                 retry.append(group[longer | larger | wider])
             pending = torch.cat(retry) if retry else pending[:0]
 
@@ -223,9 +226,9 @@ def _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count,
     device = points.device
     with_faces = torch.nonzero(face_count > 0).flatten()
     parts = []
-    pass_key = row_k[with_faces] * (DOUBLE_DOUBLE_TIER + 1) + row_tier[with_faces]
+    pass_key = row_k[with_faces] * (LAST_TIER + 1) + row_tier[with_faces]
     for key in torch.unique(pass_key).tolist():
-        kk, tier = divmod(key, DOUBLE_DOUBLE_TIER + 1)
+        kk, tier = divmod(key, LAST_TIER + 1)
         group = with_faces[pass_key == key]
         for rows in _chunks(group, kk, memory_budget):
             lists = _lists(points, batch, rows, kk, cached)

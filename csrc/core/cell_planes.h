@@ -97,23 +97,26 @@ TV_HD Vec3<T> intersect_planes(const Plane<T>& pa, const Plane<T>& pb, const Pla
 // its digits where the offsets' own difference would cancel. Any pair, not
 // only b and c against a: close pairs of points (a few ulps apart) make a
 // nearly parallel pair beside a plane at any angle. `bisector`: which of
-// a, b, c are bisectors (the others are box faces).
+// a, b, c are bisectors (the others are box faces); `shift`: their power
+// shifts (power_plane; 0 for Voronoi cells), whose difference joins the
+// offsets' for a pair of power bisectors.
 TV_HD Vec3<DoubleDouble> intersect_planes(const Plane<DoubleDouble>& pa, const Plane<DoubleDouble>& pb,
-                                          const Plane<DoubleDouble>& pc, const bool (&bisector)[3]) {
+                                          const Plane<DoubleDouble>& pc, const bool (&bisector)[3],
+                                          const DoubleDouble (&shift)[3]) {
   using P = Plane<DoubleDouble>;
   const auto near = [](const P& first, const P& second) {
     return squared_norm(second.normal - first.normal) < DoubleDouble(0.25) * squared_norm(first.normal);
   };
-  const auto relative = [](const P& first, const P& second, bool bisectors) -> P {
+  const auto relative = [&](int f, const P& first, int s, const P& second) -> P {
     const Vec3<DoubleDouble> e = second.normal - first.normal;
-    return {e, bisectors ? DoubleDouble(0.5) * dot(e, second.normal + first.normal) : second.offset - first.offset};
+    if (!(bisector[f] && bisector[s])) return {e, second.offset - first.offset};
+    return {e, DoubleDouble(0.5) * (dot(e, second.normal + first.normal) + (shift[s] - shift[f]))};
   };
   const bool ab = near(pa, pb), ac = near(pa, pc);
   if (ab || ac) {
-    return cramer_point(pa, ab ? relative(pa, pb, bisector[0] && bisector[1]) : pb,
-                        ac ? relative(pa, pc, bisector[0] && bisector[2]) : pc);
+    return cramer_point(pa, ab ? relative(0, pa, 1, pb) : pb, ac ? relative(0, pa, 2, pc) : pc);
   }
-  if (near(pb, pc)) return cramer_point(pa, pb, relative(pb, pc, bisector[1] && bisector[2]));
+  if (near(pb, pc)) return cramer_point(pa, pb, relative(1, pb, 2, pc));
   return cramer_point(pa, pb, pc);
 }
 

@@ -250,9 +250,7 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   static constexpr Id kNone = static_cast<Id>(-1);
   // Double-double cells (the last resort, on the host) clip by exact
   // predicates (exact_predicates.h): their clips are never inconsistent.
-  // Not power cells: the predicates take bisectors (a power cell in
-  // double-double decides by its arithmetic, 2^53 times finer than float64's).
-  static constexpr bool kExactPredicates = std::is_same<T, DoubleDouble>::value && !kWeighted;
+  static constexpr bool kExactPredicates = std::is_same<T, DoubleDouble>::value;
   static_assert(MAX_PLANES <= kNone, "plane ids must stay below kNone");
   static_assert(!kCompact || (std::is_same<T, float>::value && MAX_PLANES <= 32),
                 "compact triangles hold float32 coordinates and 5-bit plane ids");
@@ -341,7 +339,8 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
                                      const Plane<T>& pb, const Plane<T>& pc) {
     Vec3<T> vertex;
     if constexpr (kExactPredicates) {
-      vertex = intersect_planes(pa, pb, pc, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes});
+      vertex = intersect_planes(pa, pb, pc, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes},
+                                {shift_of(a), shift_of(b), shift_of(c)});
 #if !defined(__CUDA_ARCH__)
       homogeneous.slot[t] = exact::homogeneous(pa, pb, pc);
 #endif
@@ -428,6 +427,13 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
       return beyond_power_security_radius(neighbor_dist2, radius2, this->spread, tolerance);
     }
   }
+  // The power shift of plane q (power_plane; 0 for a box face or a Voronoi cell).
+  TV_HD T shift_of(int q) const {
+    if constexpr (kWeighted) {
+      if (q >= kBoxPlanes) return this->shift[q - kBoxPlanes];
+    }
+    return T(0);
+  }
   // A power cell's neighbour across plane q >= kBoxPlanes.
   TV_HD int32_t owner_of(int q) const {
     if constexpr (kWeighted) return this->owner[q - kBoxPlanes];
@@ -490,7 +496,7 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
         }
       }
     }
-    if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
+    if (!classify(p, shift, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
     if constexpr (kWeighted) {
       if (clipped.count() == num_triangles) {
         num_triangles = 0;
@@ -563,10 +569,11 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   // vertices). Independent iterations: several vertex loads in flight at
   // once (the GPU kernel is bound by local-memory latency); the mask words
   // are built in registers.
-  TV_HD bool classify(const Plane<T>& p, T threshold, Mask& clipped, T& kept_radius2) const {
+  // `shift`: p's power shift (the exact predicates' offset).
+  TV_HD bool classify(const Plane<T>& p, T shift, T threshold, Mask& clipped, T& kept_radius2) const {
     if constexpr (kExactPredicates) {
 #if !defined(__CUDA_ARCH__)
-      return classify_exactly(p, clipped, kept_radius2);
+      return classify_exactly(p, shift, clipped, kept_radius2);
 #endif
     }
     uint32_t any_clipped = 0u;
@@ -594,7 +601,23 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   }
 
   // classify for a bisector p by the exact sign of each vertex (no band).
-  bool classify_exactly(const Plane<T>& p, Mask& clipped, T& kept_radius2) const {
+  // Whether the filter (exact::filtered_side) holds for plane q, whose error
+  // bounds take its double-double offset within a few roundings of its
+  // magnitude: true of box faces and bisectors, and of power bisectors
+  // whose shift cancels less than half of |r|^2 + |shift| (offset (|r|^2 +
+  // shift) / 2, rounded on that scale).
+  bool filter_holds(int q) const { return q < kBoxPlanes || filter_holds(plane(q), shift_of(q)); }
+  static bool filter_holds(const Plane<T>& p, T shift) {
+    if constexpr (!kWeighted) return true;
+    const double r2 = static_cast<double>(squared_norm(p.normal)), twice = 2.0 * static_cast<double>(p.offset);
+    const double s = static_cast<double>(shift);
+    return (twice < 0.0 ? -twice : twice) >= 0.5 * (r2 + (s < 0.0 ? -s : s));
+  }
+
+  // Power planes whose shift cancels their offset (filter_holds) skip the
+  // filter.
+  bool classify_exactly(const Plane<T>& p, T shift, Mask& clipped, T& kept_radius2) const {
+    const bool filter_plane = filter_holds(p, shift);
     uint32_t any_clipped = 0u;
     kept_radius2 = T(0);
     for (int w = 0; w < kMaskWords; ++w) {
@@ -602,13 +625,15 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
       const int end = min_of(num_triangles - 32 * w, 32);
       for (int i = 0; i < end; ++i) {
         const int t = 32 * w + i;
-        int side = exact::filtered_side(homogeneous.slot[t], p);
+        const Corners corners = triangle.corners(t);
+        const Id a = corner(corners, 0), b = corner(corners, 1), c = corner(corners, 2);
+        const bool filter = filter_plane && (!kWeighted || (filter_holds(a) && filter_holds(b) && filter_holds(c)));
+        int side = filter ? exact::filtered_side(homogeneous.slot[t], p) : 2;
         if (side == 2) {  // undecided: expand the vertex's planes exactly
-          const Corners corners = triangle.corners(t);
-          const Id a = corner(corners, 0), b = corner(corners, 1), c = corner(corners, 2);
           const Plane<T> planes[3] = {plane(a), plane(b), plane(c)};
           const Plane<T>* const rows[4] = {&planes[0], &planes[1], &planes[2], &p};
-          side = exact::exact_side(rows, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes, true});
+          side = exact::exact_side(rows, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes, true},
+                                   {shift_of(a), shift_of(b), shift_of(c), shift});
         }
         const bool outside = side < 0;
         bits |= uint32_t(outside) << i;

@@ -110,18 +110,21 @@ inline Expansion det3(const Expansion (&a)[3], const Expansion (&b)[3], const Ex
 }
 
 // One plane of a double-double cell as exact rows: `bisector` when its
-// offset is |normal|^2 / 2 (a bisector of the seed), else a box face whose
-// offset is exact as stored.
+// offset is (|normal|^2 + shift) / 2 (a bisector of the seed; a power
+// bisector with shift = w_seed - w_j, exact in double-double as the
+// difference of two doubles, else 0), else a box face whose offset is exact
+// as stored.
 struct Row {
   Expansion normal[3];
   Expansion offset;
-  Row(const Plane<DoubleDouble>& p, bool bisector) {
+  Row(const Plane<DoubleDouble>& p, bool bisector, DoubleDouble shift = DoubleDouble(0.0)) {
     normal[0] = from(p.normal.x);
     normal[1] = from(p.normal.y);
     normal[2] = from(p.normal.z);
     if (bisector) {
-      offset = add(add(multiply(normal[0], normal[0]), multiply(normal[1], normal[1])),
-                   multiply(normal[2], normal[2]));
+      offset = add(add(add(multiply(normal[0], normal[0]), multiply(normal[1], normal[1])),
+                       multiply(normal[2], normal[2])),
+                   from(shift));
       for (double& term : offset) term *= 0.5;  // exact but for underflow
     } else {
       offset = from(p.offset);
@@ -186,11 +189,13 @@ inline int filtered_side(const HomogeneousVertex& h, const Plane<DoubleDouble>& 
 
 // The exact sign of f = n_q . v + o_q at the vertex v where planes a, b, c
 // meet (rows[0..2]; rows[3] is q): -1 outside q, 0 on it, +1 inside.
-// bisector[i]: whether rows[i] is a bisector (Row). 0 also where a, b, c
-// do not meet in a point (no vertex to cut).
+// bisector[i]: whether rows[i] is a bisector (Row), shift[i] its power
+// shift (Row). 0 also where a, b, c do not meet in a point (no vertex to cut).
 // (filtered_side first: this is its slow path.)
-inline int exact_side(const Plane<DoubleDouble>* const (&rows)[4], const bool (&bisector)[4]) {
-  const Row a(*rows[0], bisector[0]), b(*rows[1], bisector[1]), c(*rows[2], bisector[2]), q(*rows[3], bisector[3]);
+inline int exact_side(const Plane<DoubleDouble>* const (&rows)[4], const bool (&bisector)[4],
+                      const DoubleDouble (&shift)[4]) {
+  const Row a(*rows[0], bisector[0], shift[0]), b(*rows[1], bisector[1], shift[1]), c(*rows[2], bisector[2], shift[2]),
+      q(*rows[3], bisector[3], shift[3]);
   const Expansion minor_a = det3(b.normal, c.normal, q.normal);
   const Expansion minor_b = det3(a.normal, c.normal, q.normal);
   const Expansion minor_c = det3(a.normal, b.normal, q.normal);

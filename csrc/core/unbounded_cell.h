@@ -226,7 +226,8 @@ class UnboundedCell {
     tri.corner[0] = a;
     tri.corner[1] = b;
     tri.corner[2] = c;
-    tri.position = intersect_planes(pa, pb, pc, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes});
+    tri.position = intersect_planes(pa, pb, pc, {a >= kBoxPlanes, b >= kBoxPlanes, c >= kBoxPlanes},
+                                    {DoubleDouble(0.0), DoubleDouble(0.0), DoubleDouble(0.0)});
     tri.radius2 = squared_norm(tri.position);
     tri.homogeneous = exact::homogeneous(pa, pb, pc);
     tri.alive = true;
@@ -260,8 +261,9 @@ class UnboundedCell {
     if (filtered != 2) return filtered;
     const Plane<DoubleDouble>* const rows[4] = {&planes_[tri.corner[0]], &planes_[tri.corner[1]],
                                                 &planes_[tri.corner[2]], &p};
-    return exact::exact_side(rows, {tri.corner[0] >= kBoxPlanes, tri.corner[1] >= kBoxPlanes,
-                                    tri.corner[2] >= kBoxPlanes, true});
+    return exact::exact_side(rows,
+                             {tri.corner[0] >= kBoxPlanes, tri.corner[1] >= kBoxPlanes, tri.corner[2] >= kBoxPlanes, true},
+                             {DoubleDouble(0.0), DoubleDouble(0.0), DoubleDouble(0.0), DoubleDouble(0.0)});
   }
 
   // The plane's value at triangle t's vertex, in double (for the walk only).

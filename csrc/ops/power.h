@@ -22,13 +22,14 @@ namespace ops {
 
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
-// cells on the heap. Tiers 0-3 compute in float64; the last one, for the
-// cells whose float64 integrals or clips the arithmetic does not resolve
-// (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
-constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096, 4096};
+// cells on the heap. Tiers 0-4 compute in float64 (the largest for the
+// cells above a dense layer of points, with thousands of faces); the last
+// two, for the cells whose float64 integrals or clips the arithmetic does not
+// resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
+constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096, 16384, 4096, 16384};
 constexpr int kLastDevicePowerTier = 1;
-constexpr int kDoubleDoublePowerTier = 4;
-constexpr int kLastPowerTier = 4;
+constexpr int kDoubleDoublePowerTier = 5;
+constexpr int kLastPowerTier = 6;
 
 template <int kPlanes, typename T>
 using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, false, true>;
@@ -204,10 +205,9 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
     case 1: run(std::integral_constant<int, kPowerTierPlanes[1]>(), Double()); break;
     case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>(), Double()); break;
     case 3: run(std::integral_constant<int, kPowerTierPlanes[3]>(), Double()); break;
-    default:
-      run(std::integral_constant<int, kPowerTierPlanes[kDoubleDoublePowerTier]>(),
-          PowerScalar<core::DoubleDouble>());
-      break;
+    case 4: run(std::integral_constant<int, kPowerTierPlanes[4]>(), Double()); break;
+    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), PowerScalar<core::DoubleDouble>()); break;
+    default: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
   }
 }
 
