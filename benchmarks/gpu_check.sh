@@ -17,6 +17,7 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | 
 echo "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}" | tee -a "$OUT/gpu.txt"
 start=$(date +%s)
 if [ -n "${BASELINE:-}" ]; then  # built in the background, beside this tree's build
+  BASELINE=$(cd "$BASELINE" && pwd)  # absolute: the runs import it from /tmp
   (cd "$BASELINE" && python3 setup.py build_ext --inplace >"$OUT/baseline_build.log" 2>&1; echo $? >"$OUT/baseline_build.rc") &
 fi
 # Verbose, each line stamped with the second it arrived: ninja prints a

@@ -226,8 +226,8 @@ def test_fuzzer_flags_unexpected_exceptions(monkeypatch):
 
     monkeypatch.setattr(fuzz.torchvor, "voronoi", boom)
     report = fuzz.run_campaign(CI_SEED, [index, invalid], max_n=CI_MAX_N)
-    # the valid case's plain and periodic calls, and the invalid case's
-    assert report.counts["unexpected_exceptions"] == 3 and report.counts["expected_errors"] == 0
+    # the valid case's plain, periodic and power calls, and the invalid case's
+    assert report.counts["unexpected_exceptions"] == 4 and report.counts["expected_errors"] == 0
     assert all("boom" in p.message for p in report.problems)
     monkeypatch.setattr(fuzz.torchvor, "voronoi", lambda *args, **kwargs: None)
     report = fuzz.run_campaign(CI_SEED, [invalid], max_n=CI_MAX_N)
