@@ -22,19 +22,10 @@ UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
 
 def profile(points, device, knn_k, label):
     """Print the operators and kernels of one periodic voronoi call (and knn), by self time."""
-    from torch.profiler import ProfilerActivity, profile as torch_profile
-
-    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
-    calls = [("voronoi", lambda: torchvor.voronoi(points, UNIT, periodic=True))]
+    calls = [("periodic voronoi", lambda: torchvor.voronoi(points, UNIT, periodic=True))]
     if knn_k:
-        calls.append(("knn", lambda: torchvor.knn(points, knn_k, box=UNIT, periodic=True)))
-    for name, fn in calls:
-        with torch_profile(activities=activities) as prof:
-            fn()
-            common.synchronize(device)
-        common.log(f"profile of periodic {name}, {label}:\n" + prof.key_averages().table(
-            sort_by=sort, row_limit=16, max_name_column_width=60))
+        calls.append(("periodic knn", lambda: torchvor.knn(points, knn_k, box=UNIT, periodic=True)))
+    common.profile_calls(calls, device, label)
 
 
 def main():

@@ -20,19 +20,6 @@ import torchvor  # noqa: E402
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
 
 
-def profile(fn, device, label):
-    """Print the operators and kernels of one call, by self time."""
-    from torch.profiler import ProfilerActivity, profile as torch_profile
-
-    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
-    with torch_profile(activities=activities) as prof:
-        fn()
-        common.synchronize(device)
-    common.log(f"profile of a power voronoi call, {label}:\n" + prof.key_averages().table(
-        sort_by=sort, row_limit=14, max_name_column_width=60))
-
-
 def main():
     parser = common.base_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
@@ -60,7 +47,8 @@ def main():
             power = common.time_fn(lambda: torchvor.voronoi(points, UNIT, weights=weights), device, args.warmup,
                                    args.repeats)
             if args.profile and n >= 0.99 * max(sizes):
-                profile(lambda: torchvor.voronoi(points, UNIT, weights=weights), device, f"{kind} n={n}")
+                common.profile_calls([("power voronoi", lambda: torchvor.voronoi(points, UNIT, weights=weights))],
+                                     device, f"{kind} n={n}", rows=14)
             empty = int((torchvor.voronoi(points, UNIT, weights=weights).status == torchvor.CellStatus.EMPTY).sum())
             common.log(f"{kind} n={n}: power_weights {common.fmt_s(solve_s)} ({solved.iterations} iterations, "
                        f"error {solved.error:.2e}); voronoi {common.fmt_s(plain)}, power {common.fmt_s(power)}, "

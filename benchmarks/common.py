@@ -309,6 +309,20 @@ def make_points(kind: str, n: int, *, seed: int, dtype: torch.dtype, device: tor
     return points, kind
 
 
+def profile_calls(calls, device: torch.device, label: str, rows: int = 16) -> None:
+    """Print the operators and kernels of each (name, fn) call, by self time."""
+    from torch.profiler import ProfilerActivity, profile as torch_profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    for name, fn in calls:
+        with torch_profile(activities=activities) as prof:
+            fn()
+            synchronize(device)
+        log(f"profile of {name}, {label}:\n" + prof.key_averages().table(
+            sort_by=sort, row_limit=rows, max_name_column_width=60))
+
+
 def neighbor_percentiles(neighbors: torch.Tensor, qs=(0.5, 0.99, 1.0)) -> list[int]:
     """Percentiles of the (small, integer) neighbour counts from their histogram."""
     counts = torch.bincount(neighbors.long().clamp(min=0)).cumsum(0).cpu()

@@ -94,9 +94,7 @@ def voronoi_graph(
         if axes is not None:
             raise NotImplementedError("torchvor.voronoi_graph: weights (power diagrams) in periodic boxes are not "
                                       "supported yet")
-        box_tensor = _box_for_call(points, box, batch)
-        _power.check_inputs(points, box_tensor, batch)
-        weights = _power.check_weights(points, weights, "voronoi_graph")
+        box_tensor, weights = _power.checked_call(points, box, batch, weights, "voronoi_graph")
         cells, edge_index, area, centroid, wall_area = _power.voronoi_graph(
             points, weights, box_tensor, batch, k, memory_budget)
         _report_failures("voronoi_graph", cells, on_failure)

@@ -344,9 +344,7 @@ def voronoi(
         if axes is not None:
             raise NotImplementedError("torchvor.voronoi: weights (power diagrams) in periodic boxes are not "
                                       "supported yet")
-        box_tensor = _box_for_call(points, box, batch)
-        _power.check_inputs(points, box_tensor, batch)
-        weights = _power.check_weights(points, weights, "voronoi")
+        box_tensor, weights = _power.checked_call(points, box, batch, weights, "voronoi")
         cells = _power.voronoi(points, weights, box_tensor, batch, k, memory_budget)
         _report_failures("voronoi", cells, on_failure)
         return cells

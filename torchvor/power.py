@@ -75,6 +75,16 @@ def check_weights(points: torch.Tensor, weights, caller: str) -> torch.Tensor:
     return weights.contiguous()
 
 
+def checked_call(points: torch.Tensor, box, batch: Optional[torch.Tensor], weights, caller: str):
+    """(box (B, 2, 3), weights) of a call with weights, checked (check_inputs,
+    check_weights)."""
+    from .ops import _box_for_call
+
+    box_tensor = _box_for_call(points, box, batch)
+    check_inputs(points, box_tensor, batch)
+    return box_tensor, check_weights(points, weights, caller)
+
+
 def check_inputs(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> None:
     """The checks of torchvor.voronoi (shapes, dtypes, finite points inside a
     box of positive extent, the batch vector), by its op on no rows."""
