@@ -306,3 +306,19 @@ def test_needle_cells_go_to_double_double(device):
     torch.testing.assert_close(power.status, plain.status)
     computed = power.status == CellStatus.SUCCESS
     torch.testing.assert_close(power.volume[computed], plain.volume[computed], rtol=1e-9, atol=0)
+
+
+def test_lloyd_with_volumes_is_power_lloyd(device):
+    gen = torch.Generator().manual_seed(5)
+    points = _cloud(200, gen, torch.float64, device)
+    volumes = (1 + torch.rand(200, generator=gen, dtype=torch.float64)).to(device)
+    moved = torchvor.lloyd(points, BOX, iters=2, volumes=volumes)
+    expected, _ = torchvor.power_lloyd(points, BOX, iters=2, volumes=volumes)
+    torch.testing.assert_close(moved, expected, rtol=0, atol=0)
+    # a tolerance that any move meets stops after the first iteration
+    once, _ = torchvor.power_lloyd(points, BOX, iters=1, volumes=volumes)
+    torch.testing.assert_close(torchvor.lloyd(points, BOX, iters=5, volumes=volumes, tol=1.0), once, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="does not take batch"):
+        torchvor.lloyd(points, BOX, volumes=volumes, batch=torch.zeros(200, dtype=torch.int64, device=device))
+    with pytest.raises(ValueError, match="periodic"):
+        torchvor.lloyd(points, BOX, volumes=volumes, periodic=True)

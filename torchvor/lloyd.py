@@ -87,6 +87,7 @@ def lloyd(
     callback: Optional[Callback] = None,
     return_history: bool = False,
     periodic: PeriodicLike = False,
+    volumes: Optional[torch.Tensor] = None,
 ) -> Union[torch.Tensor, Tuple[torch.Tensor, List[LloydStep]]]:
     """Relax ``points`` by ``iters`` Lloyd iterations inside a fixed box.
 
@@ -121,6 +122,12 @@ def lloyd(
             Each iteration is a periodic ``voronoi`` call (the cloud padded
             with images, :mod:`torchvor.periodic`), with ``k`` adapted the
             same way; ``LloydStep.k`` is then the k given (0: each call's pilot's).
+        volumes: (N,) target volumes in proportion: capacity-constrained
+            Lloyd instead (:func:`torchvor.power_lloyd`: each iteration gives
+            every power cell its volume, then moves the points to the power
+            cells' centroids). Takes ``box``, ``iters``, ``tol``, ``k`` and
+            ``progress``; not ``batch``, ``periodic``, ``callback`` or
+            ``return_history`` (ValueError).
 
     Returns:
         The relaxed points, a new (N, 3) tensor with the input's dtype and
@@ -137,6 +144,15 @@ def lloyd(
     recorded energy is NaN.
     """
     _check_arguments(points, iters, tol, k)
+    if volumes is not None:
+        unsupported = [name for name, value in (("batch", batch), ("callback", callback)) if value is not None]
+        unsupported += ["periodic"] if _periodic.periodic_axes(periodic, "lloyd") is not None else []
+        unsupported += ["return_history"] if return_history else []
+        if unsupported:
+            raise ValueError(f"torchvor.lloyd: volumes (capacity-constrained Lloyd) does not take {', '.join(unsupported)}")
+        from .power import power_lloyd
+
+        return power_lloyd(points, box, iters, volumes=volumes, k=k, progress=progress, move_tol=tol)[0]
     current = points.detach()  # never written in place: each iteration makes a new tensor
     axes = _periodic.periodic_axes(periodic, "lloyd")
     if axes is not None:

@@ -562,7 +562,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
 
 
 def power_lloyd(points: torch.Tensor, box=None, iters: int = 10, *, volumes: Optional[torch.Tensor] = None,
-                tol: float = 1e-6, k: Optional[int] = None, progress: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+                tol: float = 1e-6, k: Optional[int] = None, progress: bool = False,
+                move_tol: Optional[float] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Capacity-constrained Lloyd relaxation (de Goes et al. 2012, blue noise
     through optimal transport): each iteration solves the weights that give
     every cell its target volume (:func:`power_weights`, warm-started from the
@@ -576,6 +577,8 @@ def power_lloyd(points: torch.Tensor, box=None, iters: int = 10, *, volumes: Opt
         tol: :func:`power_weights`' tolerance at each iteration.
         k: as :func:`torchvor.voronoi`.
         progress: print each iteration's Newton iterations and error.
+        move_tol: stop early once an iteration moves no point farther than
+            this times the box's diagonal (None: run all ``iters``).
 
     Returns:
         ``(points, weights)``: the moved points, (N, 3) in the input's dtype,
@@ -599,7 +602,11 @@ def power_lloyd(points: torch.Tensor, box=None, iters: int = 10, *, volumes: Opt
             print(f"power_lloyd: iteration {iteration}: {solved.iterations} Newton iterations, "
                   f"error {solved.error:.2e}")
         # every cell holds its target volume (> 0), so every centroid is finite; clamp rounding
-        current = torch.minimum(torch.maximum(moved, lo), hi)
+        moved = torch.minimum(torch.maximum(moved, lo), hi)
+        largest_move = float((moved - current).double().norm(dim=1).max()) if len(current) else 0.0
+        current = moved
+        if move_tol is not None and largest_move <= move_tol * float((hi - lo).double().norm()):
+            break
     if weights is None:
         weights = torch.zeros(points.shape[0], dtype=points.dtype, device=points.device)
     return current, weights
