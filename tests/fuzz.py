@@ -434,6 +434,10 @@ class Campaign:
         if self.out is not None:
             print(text, file=self.out, flush=True)
 
+    def note(self, text: str) -> None:
+        """Counts a remark that is not a finding (the oracles' limits, documented limits)."""
+        self.report.oracle_notes[text] = self.report.oracle_notes.get(text, 0) + 1
+
     def problem(self, case: Case, impl: str, category: str, message: str, cell=None, count=1) -> None:
         p = Problem(case.index, case.kind, DTYPE_NAMES[case.dtype], str(self.device), impl, category, message,
                     replay_command(case, self.report.settings, impl), cell, count)

@@ -29,9 +29,38 @@ def wrapped(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, axes) -> np.ndar
     return np.where(np.asarray(axes) & (moved >= hi), lo, moved)
 
 
-def exact_over_images(points: np.ndarray, i: int, lo, hi, axes, candidates: int = 60):
+def images_round(lo: np.ndarray, hi: np.ndarray, axes) -> bool:
+    """Whether moving a point of [lo, hi) by a period can round in float64
+    (exact for a box [0, L] with L a power-of-two multiple of the points'
+    spacing; taken as rounding unless lo is 0 along every periodic axis)."""
+    return bool(np.any(np.asarray(axes) & (lo != 0)))
+
+
+def near_pair_across_a_face(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, axes, rounds: float = 1e4) -> bool:
+    """Whether two points lie closer than `rounds` roundings of the box's
+    coordinates across a periodic face (nearer through an image than
+    directly): api.md's limit of periodic cells whose images round."""
+    from scipy.spatial import cKDTree
+
+    axes = np.asarray(axes)
+    ulp = np.finfo(np.float64).eps * float(np.abs(np.concatenate([lo, hi])).max())
+    radius = rounds * ulp
+    period = np.where(axes, hi - lo, 0.0)
+    inside = points - lo
+    if len(points) < 2 or radius <= 0:
+        return False
+    size = np.where(axes, period, 4 * (np.abs(inside).max() + 1.0))
+    tree = cKDTree(np.mod(inside, size), boxsize=size)
+    for i, j in tree.query_pairs(radius):
+        if np.linalg.norm(points[i] - points[j]) > radius:
+            return True  # near only through an image
+    return False
+
+
+def exact_over_images(points: np.ndarray, i: int, lo, hi, axes, candidates: int = 60, weights=None):
     """The exact oracle's volume of cell i among the points and their images
-    one period away, from its `candidates` nearest (None where it cannot)."""
+    one period away, from its `candidates` nearest (None where it cannot);
+    the power cell with `weights` (N,)."""
     period = np.where(axes, hi - lo, 0.0)
     shifts = [s for s in np.ndindex(*(3 if a else 1 for a in axes)) if any(v != (1 if a else 0) for v, a in
                                                                           zip(s, axes))]
@@ -39,8 +68,9 @@ def exact_over_images(points: np.ndarray, i: int, lo, hi, axes, candidates: int 
                                        for s in shifts])
     distance = ((every - every[i]) ** 2).sum(1)
     nearest = [int(j) for j in np.argsort(distance)[:candidates + 1] if j != i]
+    every_w = None if weights is None else np.tile(weights, len(shifts) + 1)
     try:
-        return exact_cell_oracle(every, i, (lo - period, hi + period), candidates=nearest).volume
+        return exact_cell_oracle(every, i, (lo - period, hi + period), candidates=nearest, weights=every_w).volume
     except Exception:  # noqa: BLE001 - more facets than the exact oracle takes
         return None
 
@@ -76,6 +106,10 @@ def check_periodic(campaign, case, shared: Dict) -> None:
         expected = float(np.prod(hi - lo))
         got = volume[members].sum()
         if not abs(got - expected) <= SUM_RTOL[dtype] * expected:
+            cloud_points = wrapped(case.points[members].astype(np.float64), lo, hi, axes)
+            if images_round(lo, hi, axes) and near_pair_across_a_face(cloud_points, lo, hi, axes):
+                campaign.note("periodic volume sum off: a near pair across a face, images rounded (api.md)")
+                continue
             campaign.report.add(kind, "wrong_volume_sums")
             campaign.problem(case, "periodic", "volume_sum",
                              f"periodic {axes}, cloud {cloud}: volumes sum to {got!r}, the box's is {expected!r}")

@@ -501,7 +501,7 @@ def _ring_order(ring, normal):
     return sorted(ring, key=cmp_to_key(compare))
 
 
-def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] = None) -> CellOracle:
+def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] = None, weights=None) -> CellOracle:
     """Voronoi cell of points[i] clipped to box = (lo, hi) in exact rational
     arithmetic (Fractions over the float64 inputs): for cells whose vertices
     nearly coincide (bisectors of tight clusters), where Qhull's vertices and
@@ -517,7 +517,9 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     Slow (seconds a cell): for single cells of regression tests. Exact copies
     among the candidates give one plane, and copies of the seed none; a seed
     with a lower-index copy (a DUPLICATE cell) is not handled here (use
-    voronoi_cell_oracle).
+    voronoi_cell_oracle). With `weights` (N,), the power cell (power
+    bisectors; not an empty one: use voronoi_cell_oracle), its fans taken
+    from the mean of its vertices (the seed can lie outside it).
     """
     from fractions import Fraction
     from itertools import combinations
@@ -525,13 +527,17 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     pts = _np64(points)
     lo, hi = (_np64(b).reshape(3) for b in box)
     if candidates is None:
-        candidates = voronoi_cell_oracle(pts, i, (lo, hi)).facet_neighbors.tolist()
+        candidates = voronoi_cell_oracle(pts, i, (lo, hi), weights=weights).facet_neighbors.tolist()
     exact = [tuple(Fraction(float(c)) for c in p) for p in pts]
     seed = exact[i]
     rel = [tuple(q[a] - seed[a] for a in range(3)) for q in exact]
+    w = [Fraction(0)] * len(pts) if weights is None else [Fraction(float(x)) for x in _np64(weights).reshape(-1)]
 
-    def bisector(j):  # x . r <= |r|^2 / 2, relative to the seed
-        return (rel[j], _dot(rel[j], rel[j]) / 2)
+    def offset(j):  # x . r <= (|r|^2 + w_i - w_j) / 2, relative to the seed
+        return (_dot(rel[j], rel[j]) + w[i] - w[j]) / 2
+
+    def bisector(j):
+        return (rel[j], offset(j))
 
     box_planes = []
     for a in range(3):
@@ -556,13 +562,16 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
         violated = set()
         for v in vertices:
             for j in range(len(pts)):
-                if j != i and j not in chosen and rel[j] != (0, 0, 0) and _dot(rel[j], v) > _dot(rel[j], rel[j]) / 2:
+                if j != i and j not in chosen and rel[j] != (0, 0, 0) and _dot(rel[j], v) > offset(j):
                     violated.add(j)
         if not violated:
             break
         chosen = sorted(set(chosen) | violated)
     # Each face: its vertices in order around it (_ring_order), fanned from
-    # the first; tetrahedra with the seed (origin).
+    # the first; tetrahedra with the vertices' mean o (inside the cell).
+    if not vertices:
+        raise RuntimeError("exact oracle: empty cell")
+    o = tuple(sum(v[a] for v in vertices) / len(vertices) for a in range(3))
     on_plane = {}
     for v, through in vertices.items():
         for t in through:
@@ -579,13 +588,14 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
         a0 = ordered[0]
         face_area2, face_moment = 0.0, np.zeros(3)
         for b, c in zip(ordered[1:-1], ordered[2:]):
-            six = _dot(a0, _cross(b, c))
+            six = _dot(tuple(a0[a] - o[a] for a in range(3)),
+                       _cross(tuple(b[a] - o[a] for a in range(3)), tuple(c[a] - o[a] for a in range(3))))
             vol = abs(six) / 6
             volume += vol
-            total = tuple(a0[a] + b[a] + c[a] for a in range(3))
+            total = tuple(o[a] + a0[a] + b[a] + c[a] for a in range(3))
             for a in range(3):
                 first[a] += vol * total[a] / 4
-            second += vol / 20 * (_dot(a0, a0) + _dot(b, b) + _dot(c, c) + _dot(total, total))
+            second += vol / 20 * (_dot(o, o) + _dot(a0, a0) + _dot(b, b) + _dot(c, c) + _dot(total, total))
             e1 = np.array([float(b[a] - a0[a]) for a in range(3)])
             e2 = np.array([float(c[a] - a0[a]) for a in range(3)])
             area2 = float(np.linalg.norm(np.cross(e1, e2)))
@@ -608,13 +618,18 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
 
 # ----------------------------------------------------------------------------- periodic boxes
 
-def periodic_cell_oracle(points, i: int, box, periodic) -> CellOracle:
+def periodic_cell_oracle(points, i: int, box, periodic, weights=None) -> CellOracle:
     """The Voronoi cell of points[i] (points inside box) when the box repeats
     along the axes `periodic` (3 bools): voronoi_cell_oracle over the points
     and their images shifted by every s in {-t..t}^3 on those axes, in a box
     wide enough not to cut it; t grows until twice the cell's radius is
-    within t periods. Faces are keyed by (point, shift) (walls: (-1 - w, None))."""
+    within t periods. Faces are keyed by (point, shift) (walls: (-1 - w, None)).
+    With `weights` (N,), the power cell, images carrying their point's weight:
+    t grows until ``R + sqrt(R^2 + max w - w_i)`` is within t periods (an
+    empty cell is empty from t = 1 on: its own images keep the true cell
+    within half a period of the point, inside the wide box)."""
     pts = _np64(points)
+    w = None if weights is None else _np64(weights).reshape(-1)
     lo, hi = (_np64(b).reshape(3) for b in box)
     axes = np.array(periodic, dtype=bool)
     period = np.where(axes, hi - lo, 0.0)
@@ -626,8 +641,12 @@ def periodic_cell_oracle(points, i: int, box, periodic) -> CellOracle:
         every = np.concatenate([pts, images])
         shift_of = np.concatenate([np.zeros((n, 3), np.int64), np.repeat(shifts, n, axis=0)])
         wide = (lo - turns * period, hi + turns * period)
-        cell = voronoi_cell_oracle(every, i, wide)
-        reach = 2 * cell.radius
+        every_w = None if w is None else np.tile(w, len(shifts) + 1)
+        cell = voronoi_cell_oracle(every, i, wide, weights=every_w)
+        if w is None:
+            reach = 2 * cell.radius
+        else:
+            reach = 0.0 if cell.empty else cell.radius + np.sqrt(cell.radius ** 2 + w.max() - w[i])
         if cell.duplicate or not axes.any() or reach <= turns * period[axes].min():
             break
     if cell.faces is not None:

@@ -42,3 +42,22 @@ def test_exact_oracle_counts_copies_once():
     cell = exact_cell_oracle(points, 0, (np.zeros(3), np.ones(3)), candidates=[1, 2, 3])
     assert cell.volume == pytest.approx(0.4, rel=1e-14, abs=0)
     np.testing.assert_allclose(cell.centroid, [0.2, 0.5, 0.5], rtol=1e-14)
+
+
+def test_exact_oracle_with_weights_matches_qhull():
+    """Power cells (weights up to 4 squared spacings: many cells lie away from
+    their points) in rational arithmetic, against Qhull's half-space cells."""
+    rng = np.random.default_rng(2)
+    points, weights = rng.random((25, 3)), rng.random(25) * 0.6
+    box = (np.zeros(3), np.ones(3))
+    checked = 0
+    for i in range(25):
+        qhull = voronoi_cell_oracle(points, i, box, weights=weights)
+        if qhull.empty:
+            continue
+        exact = exact_cell_oracle(points, i, box, weights=weights)
+        assert exact.volume == pytest.approx(qhull.volume, rel=1e-10)
+        np.testing.assert_allclose(exact.centroid, qhull.centroid, atol=1e-10)
+        assert exact.second_moment == pytest.approx(qhull.second_moment, rel=1e-9)
+        checked += 1
+    assert checked >= 5

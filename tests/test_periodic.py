@@ -443,7 +443,7 @@ def test_float32_runs_in_float32_where_every_image_is_exact(device, gen, monkeyp
 
     used = []
     inner = periodic_module._cells
-    monkeypatch.setattr(periodic_module, "_cells", lambda *args: used.append(args[-2]) or inner(*args))  # its dtype
+    monkeypatch.setattr(periodic_module, "_cells", lambda *args: used.append(args[6]) or inner(*args))  # its dtype
     for box, expected in ((BOX, torch.float32), (([-0.5] * 3, [0.5] * 3), torch.float64)):
         lo, hi = (torch.tensor(b, dtype=torch.float64) for b in box)
         spread = torch.cat([lo + torch.rand(20000, 3, generator=gen, dtype=torch.float64) * (hi - lo),

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import torchvor
+import torchvor.distributed
 from torchvor import CellStatus
 from oracles import voronoi_cell_oracle
 
@@ -210,8 +211,10 @@ def test_weights_argument_errors(device):
         torchvor.voronoi(points, BOX, weights=torch.full((20,), math.nan, dtype=torch.float64, device=device))
     with pytest.raises(TypeError, match="torch.Tensor"):
         torchvor.voronoi(points, BOX, weights=[0.0] * 20)
-    with pytest.raises(NotImplementedError, match="periodic"):
-        torchvor.voronoi(points, BOX, weights=torch.zeros(20, dtype=torch.float64, device=device), periodic=True)
+    with pytest.raises(NotImplementedError, match="not distributed"):
+        torchvor.distributed.voronoi(points, BOX, weights=torch.zeros(20, dtype=torch.float64, device=device))
+    with pytest.raises(ValueError, match="periodic needs a box"):
+        torchvor.voronoi(points, None, weights=torch.zeros(20, dtype=torch.float64, device=device), periodic=True)
     with pytest.raises(ValueError, match="inside"):
         torchvor.voronoi(points + 2, BOX, weights=torch.zeros(20, dtype=torch.float64, device=device))
 
@@ -320,5 +323,5 @@ def test_lloyd_with_volumes_is_power_lloyd(device):
     torch.testing.assert_close(torchvor.lloyd(points, BOX, iters=5, volumes=volumes, tol=1.0), once, rtol=0, atol=0)
     with pytest.raises(ValueError, match="does not take batch"):
         torchvor.lloyd(points, BOX, volumes=volumes, batch=torch.zeros(200, dtype=torch.int64, device=device))
-    with pytest.raises(ValueError, match="periodic"):
-        torchvor.lloyd(points, BOX, volumes=volumes, periodic=True)
+    with pytest.raises(ValueError, match="does not take callback"):
+        torchvor.lloyd(points, BOX, volumes=volumes, callback=lambda *_: None)

@@ -103,6 +103,7 @@ def cvt_energy(
     batch: Optional[torch.Tensor] = None,
     k: Optional[int] = None,
     periodic: _ops.PeriodicLike = False,
+    weights: Optional[torch.Tensor] = None,
 ) -> torch.Tensor:
     """CVT energy: the sum over Voronoi cells of ``integral |y - x_i|^2 dy``.
 
@@ -121,6 +122,10 @@ def cvt_energy(
             on a pilot sample); any k gives exact cells, one close to what cells
             need is fastest.
         periodic: as :func:`torchvor.voronoi` (the box is then required).
+        weights: (N,) as :func:`torchvor.voronoi`: the sum over the power
+            cells (an empty cell adds 0), differentiable in the weights
+            (``dE/dw_j`` from the faces' motion), not in the points (that
+            backward raises).
 
     Returns:
         A 0-dim tensor of the points' dtype and device. It is NaN when a cell
@@ -131,6 +136,9 @@ def cvt_energy(
         TypeError: non-floating points or mismatched dtypes.
     """
     axes = _ops._periodic.periodic_axes(periodic, "cvt_energy")
+    if weights is not None:
+        cells = _ops.voronoi(points, box, batch=batch, k=k, periodic=periodic, weights=weights, on_failure="flag")
+        return cells.second_moment.sum()
     if axes is not None:
         _ops._check_tensor(points, "points")
         _ops._check_points(points, "cvt_energy")

@@ -535,9 +535,18 @@ def _setup(points, box, batch, group, caller: str):
     return g, points, batch, box_arg, _Slabs(g, points, full_box)
 
 
+def _no_weights(caller: str, kwargs) -> None:
+    """Power diagrams are computed in one process only, so far."""
+    if kwargs.get("weights") is not None:
+        raise NotImplementedError(f"torchvor.distributed.{caller}: weights (power diagrams) are not distributed "
+                                  f"yet; call torchvor.{caller} in one process")
+    kwargs.pop("weights", None)
+
+
 def _start(caller: str, points, box, batch, group, kwargs):
     """A cell call's first steps: (on_failure, group, points, batch, boxes,
     this rank's slab), `kwargs` left with what the plain op takes."""
+    _no_weights(caller, kwargs)
     if _periodic.periodic_axes(kwargs.pop("periodic", False), f"distributed.{caller}") is not None:
         raise NotImplementedError(f"torchvor.distributed.{caller}: periodic boxes are supported by "
                                   f"torchvor.distributed.voronoi and lloyd only, so far")
@@ -583,6 +592,7 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
         the single-process call's results on the whole cloud. The outputs carry
         no gradient (no distributed backward yet).
     """
+    _no_weights("voronoi", kwargs)
     axes = _periodic.periodic_axes(kwargs.pop("periodic", False), "distributed.voronoi")
     if axes is not None:
         return _periodic_voronoi(points, box, batch, group, axes, kwargs)
@@ -616,7 +626,8 @@ class _RankAgreement(_periodic.Agreement):
     def max(self, values: torch.Tensor) -> torch.Tensor:
         return self.g.reduce(values, dist.ReduceOp.MAX)
 
-    def rows(self, points, box, rows, batch, k, memory_budget) -> VoronoiCells:
+    def rows(self, points, box, rows, batch, k, memory_budget, weights=None) -> VoronoiCells:
+        assert weights is None, "power cells are not distributed (voronoi raises before)"
         g = self.g.recounted(points.shape[0])
         points = points.detach()
         wanted = torch.zeros(points.shape[0], dtype=torch.bool, device=g.device)

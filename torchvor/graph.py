@@ -81,7 +81,7 @@ def voronoi_graph(
         periodic: as :func:`torchvor.voronoi`; edges then carry ``shift``, and
             face centroids lie next to cell i's point.
         weights: as :func:`torchvor.voronoi`: the power diagram's faces (an
-            empty cell has none). Not with ``periodic``.
+            empty cell has none), also with ``periodic``.
 
     Returns:
         :class:`VoronoiGraph`. Exact duplicates (status DUPLICATE) have no edges.
@@ -90,10 +90,7 @@ def voronoi_graph(
     _check_on_failure("voronoi_graph", on_failure)
     _check_tensor(points, "points")
     axes = _periodic.periodic_axes(periodic, "voronoi_graph")
-    if weights is not None:
-        if axes is not None:
-            raise NotImplementedError("torchvor.voronoi_graph: weights (power diagrams) in periodic boxes are not "
-                                      "supported yet")
+    if weights is not None and axes is None:
         box_tensor, weights = _power.checked_call(points, box, batch, weights, "voronoi_graph")
         cells, edge_index, area, centroid, wall_area = _power.voronoi_graph(
             points, weights, box_tensor, batch, k, memory_budget)
@@ -102,9 +99,11 @@ def voronoi_graph(
     if axes is not None:
         _check_points(points, "voronoi_graph")
         pbox = _periodic.periodic_box(points, box, batch, axes, "voronoi_graph")
+        if weights is not None:
+            weights = _power.check_weights(points, weights, "voronoi_graph")
         with torch.no_grad():
             cells, edge_index, area, centroid, wall_area, shift = _periodic.voronoi_graph(
-                points, pbox, batch, k, memory_budget)
+                points, pbox, batch, k, memory_budget, weights)
         _report_failures("voronoi_graph", cells, on_failure)
         return VoronoiGraph(edge_index, area, centroid, wall_area, cells, shift)
     box_tensor = _box_for_call(points, box, batch)

@@ -125,8 +125,8 @@ def lloyd(
         volumes: (N,) target volumes in proportion: capacity-constrained
             Lloyd instead (:func:`torchvor.power_lloyd`: each iteration gives
             every power cell its volume, then moves the points to the power
-            cells' centroids). Takes ``box``, ``iters``, ``tol``, ``k`` and
-            ``progress``; not ``batch``, ``periodic``, ``callback`` or
+            cells' centroids). Takes ``box``, ``iters``, ``tol``, ``k``,
+            ``progress`` and ``periodic``; not ``batch``, ``callback`` or
             ``return_history`` (ValueError).
 
     Returns:
@@ -146,13 +146,13 @@ def lloyd(
     _check_arguments(points, iters, tol, k)
     if volumes is not None:
         unsupported = [name for name, value in (("batch", batch), ("callback", callback)) if value is not None]
-        unsupported += ["periodic"] if _periodic.periodic_axes(periodic, "lloyd") is not None else []
         unsupported += ["return_history"] if return_history else []
         if unsupported:
             raise ValueError(f"torchvor.lloyd: volumes (capacity-constrained Lloyd) does not take {', '.join(unsupported)}")
         from .power import power_lloyd
 
-        return power_lloyd(points, box, iters, volumes=volumes, k=k, progress=progress, move_tol=tol)[0]
+        return power_lloyd(points, box, iters, volumes=volumes, k=k, progress=progress, move_tol=tol,
+                           periodic=periodic)[0]
     current = points.detach()  # never written in place: each iteration makes a new tensor
     axes = _periodic.periodic_axes(periodic, "lloyd")
     if axes is not None:

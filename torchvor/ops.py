@@ -326,8 +326,8 @@ def voronoi(
             float64 (outputs in the points' dtype), with ``k`` the first
             pass's neighbours (default 32, doubled for the cells that need
             more). Volume, centroid and second moment are differentiable in
-            the weights (not in the points: that backward raises). Not with
-            ``periodic``.
+            the weights (not in the points: that backward raises). With
+            ``periodic``, images carry their point's weight.
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,
@@ -340,10 +340,7 @@ def voronoi(
     _check_on_failure("voronoi", on_failure)
     _check_tensor(points, "points")
     axes = _periodic.periodic_axes(periodic, "voronoi")
-    if weights is not None:
-        if axes is not None:
-            raise NotImplementedError("torchvor.voronoi: weights (power diagrams) in periodic boxes are not "
-                                      "supported yet")
+    if weights is not None and axes is None:
         box_tensor, weights = _power.checked_call(points, box, batch, weights, "voronoi")
         cells = _power.voronoi(points, weights, box_tensor, batch, k, memory_budget)
         _report_failures("voronoi", cells, on_failure)
@@ -351,7 +348,9 @@ def voronoi(
     if axes is not None:
         _check_points(points, "voronoi")
         pbox = _periodic.periodic_box(points, box, batch, axes, "voronoi")
-        cells = _periodic.voronoi(points, pbox, batch, k, memory_budget)
+        if weights is not None:
+            weights = _power.check_weights(points, weights, "voronoi")
+        cells = _periodic.voronoi(points, pbox, batch, k, memory_budget, weights=weights)
         _report_failures("voronoi", cells, on_failure)
         return cells
     box_tensor = _box_for_call(points, box, batch)

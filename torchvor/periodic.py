@@ -560,18 +560,27 @@ class Agreement:
         """`values`, each the largest any caller holds."""
         return values
 
-    def rows(self, points, box, rows, batch, k, memory_budget) -> VoronoiCells:
-        """The plain cells of `points[rows]` among `points` (ops._voronoi_rows)."""
-        from .ops import _voronoi_rows
+    def rows(self, points, box, rows, batch, k, memory_budget, weights=None) -> VoronoiCells:
+        """The cells of `points[rows]` among `points` (ops._voronoi_rows; the
+        power cells with `weights`, differentiable in them)."""
+        return _rows(points, box, rows, batch, k, memory_budget, weights)
 
+
+def _rows(points, box, rows, batch, k, memory_budget, weights=None) -> VoronoiCells:
+    """Agreement.rows in one process."""
+    from .ops import _voronoi_rows
+    from .power import voronoi as _power_rows
+
+    if weights is None:
         return _voronoi_rows(points, box, rows, batch, k, memory_budget)
+    return _power_rows(points, weights, box, batch, k, memory_budget, rows=rows)
 
 
 ONE_PROCESS = Agreement()
 
 
 def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool,
-          agreement: Agreement = ONE_PROCESS) -> PeriodicCells:
+          agreement: Agreement = ONE_PROCESS, weights: Optional[torch.Tensor] = None) -> PeriodicCells:
     """The periodic cells of `points` (and the padded cloud's graph with
     `graph`): padded below lo with images (pad's one_sided) until every
     computed cell is certified (module docstring). Without `graph`, the cells
@@ -580,18 +589,19 @@ def cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool,
     of a cell come with their neighbours'). float32 points are computed in
     float32 where every image is exact (images_exact), else in float64.
     `agreement`: where the decisions are taken and the plain cells computed
-    (Agreement; the graph in one process only)."""
+    (Agreement; the graph in one process only). `weights` (N,): the power
+    cells (checked weights), whose images carry their point's weight and
+    whose reach is that of the power radius of security (_reach)."""
     if points.dtype == torch.float32:
         try:
-            return _cells(points, pbox, batch, k, memory_budget, graph, torch.float32, agreement)
+            return _cells(points, pbox, batch, k, memory_budget, graph, torch.float32, agreement, weights)
         except _InexactImages:
             pass
-    return _cells(points, pbox, batch, k, memory_budget, graph, work_dtype(points), agreement)
+    return _cells(points, pbox, batch, k, memory_budget, graph, work_dtype(points), agreement, weights)
 
 
 def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtype: torch.dtype,
-           agree: Agreement) -> PeriodicCells:
-    from .graph import voronoi_graph as _plain_graph
+           agree: Agreement, weights: Optional[torch.Tensor]) -> PeriodicCells:
 
     exact_only = dtype == torch.float32
     given_box = pbox
@@ -599,8 +609,10 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
     given = points.to(dtype)
     x = wrap(given, pbox, batch)
     n = x.shape[0]
+    w = None if weights is None else weights.to(dtype)
     full = _full_reach(pbox)
     margin = torch.minimum(first_margin(pbox, batch, n, FIRST_MARGIN_SPACINGS, agree.counts(pbox, batch, n)), full)
+    power = None if w is None else _PowerReach(w, x, pbox, batch, k, memory_budget)
     one_sided = True  # until an image would round: then both sides, the points' cells in place
     for round_ in range(MARGIN_ROUNDS + 1):
         padded = pad(x, pbox, batch, margin, one_sided=one_sided)
@@ -609,33 +621,34 @@ def _cells(points, pbox: PeriodicBox, batch, k, memory_budget, graph: bool, dtyp
                 raise _InexactImages()
             one_sided = False
             padded = pad(x, pbox, batch, margin)
+        padded_weights = None if w is None else w[padded.source]
         if graph:
-            result = _plain_graph(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
-                                  memory_budget=memory_budget)
+            result = _padded_graph(padded, padded_weights, k, memory_budget)
             own = VoronoiCells(*(t.index_select(0, padded.position) for t in result.cells))
         else:  # the images only bound the points' cells: theirs are not computed
             result = None
-            own = agree.rows(padded.points, padded.box, padded.position, padded.batch, k, memory_budget)
+            own = agree.rows(padded.points, padded.box, padded.position, padded.batch, k, memory_budget,
+                             padded_weights)
         seed = padded.points.detach().index_select(0, padded.position)  # where each point's cell was computed
         moved = [padded.moved]
-        within = clearance(padded, pbox, batch, margin, _reach(own))
-        short = _reaching_past(own, within)
+        within = clearance(padded, pbox, batch, margin, _reach(own, power))
+        short = _reaching_past(own, within, power)
         if not graph and agree.alone:  # the few cells that reach past the margin, alone
             for again in range(MARGIN_ROUNDS):
-                if not bool(short.any()) or not _few_pairs(x, own, short, pbox, batch):
+                if not bool(short.any()) or not _few_pairs(x, own, short, pbox, batch, power):
                     break  # none left, or so many that the whole cloud runs again (below)
-                margin = _wider(margin, own, short, x, pbox, batch, full, one_sided,
+                margin = _wider(margin, own, short, x, pbox, batch, full, one_sided, power,
                                 last=again == MARGIN_ROUNDS - 1)
                 own, within, seed, one_sided = _recompute(points if exact_only else None, given_box, x, pbox, batch,
                                                           own, within, seed, short, margin, k, memory_budget,
-                                                          one_sided)
+                                                          one_sided, w, power)
                 moved.append(short.nonzero().squeeze(1))
-                short = _reaching_past(own, within)
+                short = _reaching_past(own, within, power)
         if not agree.any(short):
             break
         if bool((margin >= full).all()):
             raise RuntimeError("torchvor: internal error: a periodic cell reaches past every image of the cloud")
-        margin = agree.max(_wider(margin, own, short, x, pbox, batch, full, one_sided,
+        margin = agree.max(_wider(margin, own, short, x, pbox, batch, full, one_sided, power,
                                   last=round_ == MARGIN_ROUNDS - 1))
     moved = torch.unique(torch.cat(moved)) if x is given else None
     return PeriodicCells(own, given, x, seed, moved, padded, result)
@@ -669,19 +682,77 @@ def clearance(padded: Padded, pbox: PeriodicBox, batch: Optional[torch.Tensor], 
     return within.index_put((at,), gap.amin(1))
 
 
-def _reach(own: VoronoiCells) -> torch.Tensor:
-    """(N,) float64: how far each cell's images must be for none to cut it
-    (twice its radius with CERTIFY_SLACK; NaN where not computed)."""
-    return 2 * own.radius.detach().double() * (1 + CERTIFY_SLACK)
+def _padded_graph(padded: Padded, weights: Optional[torch.Tensor], k, memory_budget):
+    """The VoronoiGraph of the padded cloud (the power diagram's with `weights`)."""
+    from .graph import VoronoiGraph, voronoi_graph as _plain_graph
+    from .power import voronoi_graph as _power_graph
+
+    if weights is None:
+        return _plain_graph(padded.points, padded.box, batch=padded.batch, k=k, on_failure="flag",
+                            memory_budget=memory_budget)
+    cells, edge_index, area, centroid, wall_area = _power_graph(padded.points, weights, padded.box, padded.batch, k,
+                                                                memory_budget)
+    return VoronoiGraph(edge_index, area, centroid, wall_area, cells)
 
 
-def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
-    """(N,) bool: computed cells whose twice radius reaches past `within`
-    (the distance to the nearest image left out)."""
+class _PowerReach:
+    """How far the images must reach for the power cells of weights `w` (N,)
+    in the work dtype (see _reach)."""
+
+    def __init__(self, w: torch.Tensor, x: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor], k,
+                 memory_budget):
+        from .power import _weight_max
+
+        self.w = w.detach().double()
+        self.x, self.pbox, self.batch, self.k, self.memory_budget = x, pbox, batch, k, memory_budget
+        clouds, n = pbox.box.shape[0], self.w.shape[0]
+        self.spread = (_per_point(_weight_max(self.w, batch, clouds), batch, n) - self.w).clamp_min(0)
+        self._lowest = -_per_point(_weight_max(-self.w, batch, clouds), batch, n)
+        self._covering = None
+
+    def empty_reach(self) -> torch.Tensor:
+        """(N,) float64: ``sqrt(rho^2 + w_i - min w)``, rho the farthest any
+        point of the box lies from its nearest point (the largest radius of
+        the plain periodic cells, computed once): the true cell of i lies
+        within it of x_i (its points are no farther, in power, than from
+        their nearest point). An empty cell computed in a box this wide
+        around its point is empty."""
+        if self._covering is None:
+            plain = cells(self.x.detach(), self.pbox, self.batch, self.k, self.memory_budget, graph=False).cells
+            radius = plain.radius.double()
+            rho = torch.zeros(self.pbox.box.shape[0], dtype=torch.float64, device=radius.device)
+            rho = rho.scatter_reduce(0, self.batch if self.batch is not None else torch.zeros_like(plain.status,
+                                     dtype=torch.int64), radius, "amax")
+            self._covering = _per_point(rho, self.batch, radius.shape[0])
+        return torch.sqrt(self._covering.square() + (self.w - self._lowest).clamp_min(0))
+
+
+def _reach(own: VoronoiCells, power: Optional[_PowerReach] = None) -> torch.Tensor:
+    """(N,) float64: how far each cell's images must be for none to cut it,
+    with CERTIFY_SLACK (NaN where not computed): twice its radius R; for a
+    power cell, ``R + sqrt(R^2 + max w - w_i)`` (a point j can cut it only
+    within ``R + sqrt(R^2 + w_j - w_i)``), and for an empty one
+    _PowerReach.empty_reach."""
     from .ops import CellStatus
 
-    computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE)
-    return computed & ~(_reach(own) <= within)
+    r = own.radius.detach().double()
+    if power is None:
+        return 2 * r * (1 + CERTIFY_SLACK)
+    reach = r + torch.sqrt(r * r + power.spread)
+    empty = own.status == CellStatus.EMPTY
+    if bool(empty.any()):
+        reach = torch.where(empty, power.empty_reach(), reach)
+    return reach * (1 + CERTIFY_SLACK)
+
+
+def _reaching_past(own: VoronoiCells, within: torch.Tensor, power: Optional[_PowerReach] = None) -> torch.Tensor:
+    """(N,) bool: computed cells whose reach (_reach) passes `within` (the
+    distance to the nearest image or wall left out)."""
+    from .ops import CellStatus
+
+    computed = (own.status == CellStatus.SUCCESS) | (own.status == CellStatus.DUPLICATE) | \
+        (own.status == CellStatus.EMPTY)
+    return computed & ~(_reach(own, power) <= within)
 
 
 # _recompute's radius search lists this many (cell, point) pairs at most; past
@@ -689,17 +760,17 @@ def _reaching_past(own: VoronoiCells, within: torch.Tensor) -> torch.Tensor:
 RECOMPUTE_PAIRS = 1 << 23
 
 
-def _few_pairs(x, own, short, pbox: PeriodicBox, batch) -> bool:
+def _few_pairs(x, own, short, pbox: PeriodicBox, batch, power=None) -> bool:
     """Whether _recompute's search for the cells `short` lists at most
     RECOMPUTE_PAIRS pairs, estimated at each cloud's mean density."""
     counts = (torch.bincount(batch, minlength=pbox.box.shape[0]) if batch is not None
               else torch.tensor([x.shape[0]], device=x.device)).double()
     density = float((counts / (pbox.box[:, 1] - pbox.box[:, 0]).double().prod(1)).max())
-    r = float((2.5 * own.radius[short].detach().double() * (1 + CERTIFY_SLACK)).max())
+    r = float(1.25 * _reach(own, power)[short].max())
     return int(short.sum()) * density * 27 * min(r, float(pbox.period.max())) ** 3 <= RECOMPUTE_PAIRS
 
 
-def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, one_sided: bool, last: bool):
+def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, one_sided: bool, power, last: bool):
     """The margin the cells `short` ask for (a quarter more), at least a
     quarter more than before, at most `full` (the last round: `full`). For a
     reach c, a point at distances b above lo and a below hi along an axis
@@ -714,7 +785,7 @@ def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, one_sided: boo
     hi = _per_point(pbox.box[:, 1], sub_batch, u.numel()).double()
     p = x[u].detach().double()
     below, above = p - lo, hi - p
-    c = (2 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).unsqueeze(1)
+    c = _reach(own, power)[u].unsqueeze(1)
     if one_sided:
         in_place = torch.where(above >= c, ((c - below) / 2).clamp_min(0), torch.full_like(above, math.inf))
         at_image = torch.maximum((c + above) / 2, above)
@@ -727,15 +798,16 @@ def _wider(margin, own, short, x, pbox: PeriodicBox, batch, full, one_sided: boo
     return torch.minimum(torch.maximum(1.25 * margin, wanted), full)
 
 
-def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, margin, k, memory_budget, one_sided):
+def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, margin, k, memory_budget, one_sided,
+               weights=None, power=None):
     """The cells `short` computed again among the points of the cloud padded
     by `margin` that lie within a quarter more than their reach: their rows
     of `own` replaced, `within` with the distance to the nearest point left
     out (the padding's edge, or that reach), and `seed` with where they were
     computed; and whether the padding stayed one-sided (it turns two-sided
     where an image would round). `points`: the given float32 points whose
-    images must be exact (images_exact), or None."""
-    from .ops import _voronoi_rows
+    images must be exact (images_exact), or None; `weights` (N,), `power`:
+    the power cells' weights and _PowerReach."""
     from .radius import radius as _plain_radius
 
     u = short.nonzero().squeeze(1)
@@ -745,23 +817,24 @@ def _recompute(points, given_box, x, pbox, batch, own, within, seed, short, marg
             raise _InexactImages()
         one_sided = False
         wider = pad(x, pbox, batch, margin)
-    r = float((2.5 * own.radius[u].detach().double() * (1 + CERTIFY_SLACK)).max())
+    r = float(1.25 * _reach(own, power)[u].max())
     seeds = wider.position[u]
     found = _plain_radius(wider.points.detach(), r, wider.points[seeds].detach(), batch=wider.batch,
                           query_batch=batch[u] if batch is not None else None)
     keep = torch.unique(torch.cat([found.edge_index[0], seeds]))  # sorted: batch order kept
     rows = torch.searchsorted(keep, seeds)
-    sub = _voronoi_rows(wider.points[keep], wider.box, rows, wider.batch[keep] if batch is not None else None, k,
-                        memory_budget)
+    sub = _rows(wider.points[keep], wider.box, rows, wider.batch[keep] if batch is not None else None, k,
+                memory_budget, None if weights is None else weights[wider.source[keep]])
     own = VoronoiCells(*(t.index_copy(0, u, s) for t, s in zip(own, sub)))
     reach = torch.minimum(clearance(wider, pbox, batch, margin, rows=u), torch.full_like(within[u], r))
     return own, within.index_copy(0, u, reach), seed.index_copy(0, u, wider.points.detach()[seeds]), one_sided
 
 
-def voronoi(points, pbox, batch, k, memory_budget) -> VoronoiCells:
+def voronoi(points, pbox, batch, k, memory_budget, weights=None) -> VoronoiCells:
     """torchvor.voronoi on the torus: centroids near their points (each
-    point plus the centroid's offset from it within the cell)."""
-    found = cells(points, pbox, batch, k, memory_budget, graph=False)
+    point plus the centroid's offset from it within the cell); the power
+    cells with `weights`."""
+    found = cells(points, pbox, batch, k, memory_budget, graph=False, weights=weights)
     return _caller_cells(found, points.dtype)
 
 
@@ -778,10 +851,11 @@ def _caller_cells(found: PeriodicCells, dtype: torch.dtype) -> VoronoiCells:
                         c.radius.to(dtype))
 
 
-def voronoi_graph(points, pbox, batch, k, memory_budget):
+def voronoi_graph(points, pbox, batch, k, memory_budget, weights=None):
     """torchvor.voronoi_graph on the torus: (cells, edge_index, area, centroid,
-    wall_area, shift), edges sorted by cell, neighbour, then shift."""
-    found = cells(points, pbox, batch, k, memory_budget, graph=True)
+    wall_area, shift), edges sorted by cell, neighbour, then shift; the power
+    diagram's with `weights`."""
+    found = cells(points, pbox, batch, k, memory_budget, graph=True, weights=weights)
     padded, graph = found.padded, found.graph
     dtype = points.dtype
     n = points.shape[0]

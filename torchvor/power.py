@@ -138,16 +138,19 @@ def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
 
 def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
                 k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
-                faces: bool = False, lists: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
+                faces: bool = False, lists: Optional[torch.Tensor] = None,
+                rows: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
     """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
     ``lists``: every point's neighbour list (:func:`every_list`), to slice
-    instead of searching where it is long enough.
+    instead of searching where it is long enough. ``rows``: (M,) int64, the
+    points whose cells to compute (default all); the others come back
+    NOT_COMPUTED (NaN outputs, no faces).
 
-    Returns :class:`VoronoiCells` (status EMPTY for an empty cell) and, with
-    ``faces``, every computed cell's :class:`PowerFaces`. Not differentiable.
+    Returns :class:`VoronoiCells` (N,) (status EMPTY for an empty cell) and,
+    with ``faces``, every computed cell's :class:`PowerFaces`. Not differentiable.
     """
     with torch.no_grad():
-        return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists)
+        return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists, rows)
 
 
 def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> torch.Tensor:
@@ -165,7 +168,7 @@ def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torc
     return torch.argsort(key)
 
 
-def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=None):
+def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=None, rows=None):
     n = points.shape[0]
     device = points.device
     box, counts = _clouds(points, box, batch)
@@ -208,12 +211,16 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
             pending = torch.cat(retry) if retry else pending[:0]
 
     order = _spatial_order(points, box, batch) if n else torch.arange(0, device=device)
+    if rows is not None:
+        asked = torch.zeros(n, dtype=torch.bool, device=device)
+        asked[rows] = True
+        order = order[asked[order]]
     if k is not None:
         first_k = min(max(int(k), 1), whole)
-    elif n > PILOT_FROM:
+    elif order.numel() > PILOT_FROM:
         # A pilot: an evenly spread sample of the cells, from FIRST_K neighbours
         # up; the rest start from what 98% of it needed (plus 2).
-        pilot = order[:: n // PILOT_CELLS]
+        pilot = order[:: order.numel() // PILOT_CELLS]
         row_k[pilot] = min(FIRST_K, whole)
         run(pilot)
         first_k = min(max(int(torch.quantile(needed[pilot].double(), 0.98)) + 2, 8), whole)
@@ -296,16 +303,20 @@ def _gradient_terms(points, faces: PowerFaces):
 
 
 class _PowerCells(torch.autograd.Function):
-    """volume, centroid and second moment of the power cells, with their
-    gradients in the weights (not in the points: that backward raises)."""
+    """volume, centroid and second moment of the power cells of `rows` (all
+    points where None), with their gradients in the weights (not in the
+    points: that backward raises)."""
 
     @staticmethod
-    def forward(ctx, points, weights, box, batch, k, memory_budget):
-        cells, faces = power_cells(points, weights, box, batch, k, memory_budget, faces=weights.requires_grad)
-        ctx.mark_non_differentiable(cells.status, cells.neighbors_needed, cells.radius)
+    def forward(ctx, points, weights, box, batch, k, memory_budget, rows):
+        cells, faces = power_cells(points, weights, box, batch, k, memory_budget, faces=weights.requires_grad,
+                                   rows=rows)
         ctx.faces = faces
+        ctx.rows = rows
         ctx.save_for_backward(points, cells.volume, cells.centroid)
-        return tuple(cells)
+        out = tuple(cells) if rows is None else tuple(t.index_select(0, rows) for t in cells)
+        ctx.mark_non_differentiable(*out[3:])
+        return out
 
     @staticmethod
     def backward(ctx, grad_volume, grad_centroid, grad_second, *_):
@@ -314,7 +325,12 @@ class _PowerCells(torch.autograd.Function):
                                "not yet in the points; detach the points")
         points, volume, centroid = ctx.saved_tensors
         if not ctx.needs_input_grad[1]:
-            return (None,) * 6
+            return (None,) * 7
+        if ctx.rows is not None:  # the gradients of the rows' cells, at their points
+            grad_volume, grad_centroid, grad_second = (
+                None if g is None else torch.zeros((points.shape[0],) + g.shape[1:], dtype=g.dtype,
+                                                   device=g.device).index_copy(0, ctx.rows, g)
+                for g in (grad_volume, grad_centroid, grad_second))
         i, j, d_volume, d_moment, d_second = _gradient_terms(points, ctx.faces)
         term = points.new_zeros(i.shape[0])
         if grad_volume is not None:
@@ -327,12 +343,13 @@ class _PowerCells(torch.autograd.Function):
             term = term + grad_second[i] * d_second
         term = torch.nan_to_num(term)  # a failed cell (NaN outputs) has no faces anyway
         grad_weights = torch.zeros_like(volume).index_add(0, j, term).index_add(0, i, -term)
-        return None, grad_weights, None, None, None, None
+        return None, grad_weights, None, None, None, None, None
 
 
-def voronoi(points, weights, box, batch, k, memory_budget) -> VoronoiCells:
-    """torchvor.voronoi with weights (checked): the power cells, differentiable in the weights."""
-    return VoronoiCells(*_PowerCells.apply(points, weights, box, batch, k, memory_budget))
+def voronoi(points, weights, box, batch, k, memory_budget, rows: Optional[torch.Tensor] = None) -> VoronoiCells:
+    """torchvor.voronoi with weights (checked): the power cells (of `rows`
+    only, in their order, where given), differentiable in the weights."""
+    return VoronoiCells(*_PowerCells.apply(points, weights, box, batch, k, memory_budget, rows))
 
 
 def voronoi_graph(points, weights, box, batch, k, memory_budget):
@@ -421,9 +438,32 @@ def _conjugate_gradient(edge_index, coefficient, diagonal, rhs, rtol: float, max
     return x - x.mean()
 
 
+def _jacobian(n: int, found, work: torch.Tensor):
+    """(edge_index, c) of the volumes' Jacobian in the weights (_laplacian_apply)
+    from evaluate's faces: PowerFaces, or a periodic call's (edge_index, c)."""
+    if not isinstance(found, PowerFaces):
+        return found
+    edge_index, area, _centroid, _walls = graph_of_faces(n, found, torch.float64)
+    j, i = edge_index
+    return edge_index, area / (2 * (work[i] - work[j]).norm(dim=1))
+
+
+def _periodic_faces(graph, work: torch.Tensor, period: torch.Tensor):
+    """(edge_index, c) of a periodic voronoi_graph (cells, edge_index, area,
+    centroid, wall_area, shift): c = area / (2 |x_i - image of x_j|); a
+    cell's faces with its own images do not move with its weight."""
+    _cells, edge_index, area, _centroid, _walls, shift = graph
+    j, i = edge_index
+    keep = i != j
+    j, i = j[keep], i[keep]
+    across = work[j] + shift[keep].double() * period - work[i]
+    return torch.stack([j, i]), area[keep] / (2 * across.norm(dim=1))
+
+
 def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Tensor] = None, tol: float = 1e-6,
                   max_iters: int = 100, k: Optional[int] = None, progress: bool = False,
-                  memory_budget: int = DEFAULT_MEMORY_BUDGET, weights: Optional[torch.Tensor] = None) -> PowerWeights:
+                  memory_budget: int = DEFAULT_MEMORY_BUDGET, weights: Optional[torch.Tensor] = None,
+                  periodic=False) -> PowerWeights:
     """Weights whose power diagram gives every cell a prescribed volume
     (semi-discrete optimal transport of the uniform measure on the box to the
     points).
@@ -454,6 +494,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         memory_budget: as :func:`torchvor.voronoi`.
         weights: (N,) the weights to start from (default zeros: the Voronoi
             diagram), e.g. the previous solution of points that moved a little.
+        periodic: as :func:`torchvor.voronoi` (the box required): the power
+            diagram on the torus, whose cells share the box's volume.
 
     Returns:
         :class:`PowerWeights` ``(weights, iterations, error, cells)``.
@@ -466,11 +508,17 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     """
     import warnings
 
-    from .ops import _box_for_call, _check_tensor
+    from . import periodic as _periodic
+    from .ops import _box_for_call, _check_points, _check_tensor
 
     _check_tensor(points, "points")
-    box_tensor = _box_for_call(points, box, None)
-    check_inputs(points, box_tensor, None)
+    axes = _periodic.periodic_axes(periodic, "power_weights")
+    if axes is None:
+        box_tensor = _box_for_call(points, box, None)
+        check_inputs(points, box_tensor, None)
+    else:
+        _check_points(points, "power_weights")
+        box_tensor = _periodic.periodic_box(points, box, None, axes, "power_weights").box
     if not (isinstance(tol, (int, float)) and tol > 0):
         raise ValueError(f"torchvor.power_weights: tol must be a positive number, got {tol!r}")
     if not (isinstance(max_iters, int) and max_iters >= 0):
@@ -489,6 +537,7 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         target = target * (box_volume / float(target.sum())) if n else target
     work = points.double().contiguous()
     box64 = box_tensor.double()
+    pbox = None if axes is None else _periodic.periodic_box(work, box64, None, axes, "power_weights")
     if weights is None:
         weights = torch.zeros(n, dtype=torch.float64, device=points.device)
     else:
@@ -502,11 +551,18 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     first_k = k  # then what 98% of the last cells needed (plus 2): no pilot
 
     def evaluate(w, faces):
+        """(cells, faces for _jacobian or None, volumes): the power diagram of weights w."""
         nonlocal lists, first_k
-        cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists)
-        longest = min(int(cells.neighbors_needed.max()) + 1, n + 1)
-        if lists is None or lists.shape[1] < longest:
-            lists = every_list(work, None, min(longest * 5 // 4 + 8, n + 1), memory_budget)
+        if pbox is None:
+            cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists)
+            longest = min(int(cells.neighbors_needed.max()) + 1, n + 1)
+            if lists is None or lists.shape[1] < longest:
+                lists = every_list(work, None, min(longest * 5 // 4 + 8, n + 1), memory_budget)
+        elif faces:
+            graph = _periodic.voronoi_graph(work, pbox, None, first_k, memory_budget, w)
+            cells, found = graph[0], _periodic_faces(graph, work, pbox.period[0])
+        else:
+            cells, found = _periodic.voronoi(work, pbox, None, first_k, memory_budget, weights=w), None
         if k is None:
             first_k = int(torch.quantile(cells.neighbors_needed.double(), 0.98)) + 2
         code = cells.status
@@ -526,9 +582,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     iterations = 0
     while error > tol and iterations < max_iters:
         iterations += 1
-        edge_index, area, _centroid, _walls = graph_of_faces(n, faces, torch.float64)
-        j, i = edge_index
-        coefficient = area / (2 * (work[i] - work[j]).norm(dim=1))
+        edge_index, coefficient = _jacobian(n, faces, work)
+        i = edge_index[1]
         diagonal = torch.zeros(n, dtype=torch.float64, device=points.device).index_add(0, i, coefficient)
         # inexact Newton: the step's residual need only fall with the error
         step = _conjugate_gradient(edge_index, coefficient, diagonal, target - volume, min(1e-2, 0.1 * error),
@@ -563,7 +618,7 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
 
 def power_lloyd(points: torch.Tensor, box=None, iters: int = 10, *, volumes: Optional[torch.Tensor] = None,
                 tol: float = 1e-6, k: Optional[int] = None, progress: bool = False,
-                move_tol: Optional[float] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                move_tol: Optional[float] = None, periodic=False) -> Tuple[torch.Tensor, torch.Tensor]:
     """Capacity-constrained Lloyd relaxation (de Goes et al. 2012, blue noise
     through optimal transport): each iteration solves the weights that give
     every cell its target volume (:func:`power_weights`, warm-started from the
@@ -579,31 +634,46 @@ def power_lloyd(points: torch.Tensor, box=None, iters: int = 10, *, volumes: Opt
         progress: print each iteration's Newton iterations and error.
         move_tol: stop early once an iteration moves no point farther than
             this times the box's diagonal (None: run all ``iters``).
+        periodic: as :func:`torchvor.voronoi` (the box required): the points
+            move on the torus, wrapped into the box.
 
     Returns:
         ``(points, weights)``: the moved points, (N, 3) in the input's dtype,
         and the weights of their last power diagram (before the last move).
     """
-    from .ops import _box_for_call, _check_tensor
+    from . import periodic as _periodic
+    from .ops import _box_for_call, _check_points, _check_tensor
 
     _check_tensor(points, "points")
     if not (isinstance(iters, int) and iters >= 0):
         raise ValueError(f"torchvor.power_lloyd: iters must be a non-negative int, got {iters!r}")
-    box_tensor = _box_for_call(points, box, None)
-    check_inputs(points, box_tensor, None)
+    axes = _periodic.periodic_axes(periodic, "power_lloyd")
+    pbox = None
+    if axes is None:
+        box_tensor = _box_for_call(points, box, None)
+        check_inputs(points, box_tensor, None)
+    else:
+        _check_points(points, "power_lloyd")
+        pbox = _periodic.periodic_box(points.detach(), box, None, axes, "power_lloyd")
+        box_tensor = pbox.box
     lo, hi = box_tensor[0, 0], box_tensor[0, 1]
-    current = points.detach().clone()
+    current = points.detach().clone() if pbox is None else _periodic.wrap(points.detach(), pbox, None).clone()
     weights = None
     for iteration in range(iters):
-        solved = power_weights(current, box_tensor[0], volumes=volumes, tol=tol, k=k, weights=weights)
+        solved = power_weights(current, box_tensor[0], volumes=volumes, tol=tol, k=k, weights=weights,
+                               periodic=periodic)
         weights = solved.weights
         moved = solved.cells.centroid
         if progress:
             print(f"power_lloyd: iteration {iteration}: {solved.iterations} Newton iterations, "
                   f"error {solved.error:.2e}")
         # every cell holds its target volume (> 0), so every centroid is finite; clamp rounding
-        moved = torch.minimum(torch.maximum(moved, lo), hi)
-        largest_move = float((moved - current).double().norm(dim=1).max()) if len(current) else 0.0
+        moved = torch.minimum(torch.maximum(moved, lo), hi) if pbox is None else _periodic.wrap(moved, pbox, None)
+        if pbox is not None:  # wrapped across a face: the move is the step, not the jump
+            step = _periodic.minimum_image(moved.double() - current.double(), pbox.period[0].double())
+        else:
+            step = moved.double() - current.double()
+        largest_move = float(step.norm(dim=1).max()) if len(current) else 0.0
         current = moved
         if move_tol is not None and largest_move <= move_tol * float((hi - lo).double().norm()):
             break
