@@ -79,8 +79,14 @@ for step in "${@:-cudatests}"; do
       for dtype in float32 float64; do
         python3 benchmarks/bench_periodic.py --device cuda --sizes 1M,10M --repeats 3 --dtype $dtype $( [ $dtype = float32 ] && echo --profile) 2>&1 | tee -a "$OUT/bench_periodic.log"
       done ;;
-    power)  # power_weights to 1e-6, then the power diagram against plain voronoi (1M, 10M blue and white)
-      python3 benchmarks/bench_power.py --device cuda --sizes 1M,10M --repeats 3 2>&1 | tee "$OUT/bench_power.log" ;;
+    power)  # power_weights to 1e-6, then the power diagram against plain voronoi (POWER_SIZES, default 1M,10M,
+            # blue and white); with BASELINE, the baseline's too, once it is built
+      python3 benchmarks/bench_power.py --device cuda --sizes ${POWER_SIZES:-1M,10M} --repeats 3 2>&1 | tee "$OUT/bench_power.log"
+      if [ -n "${BASELINE:-}" ]; then
+        wait
+        (cd /tmp && PYTHONPATH="$BASELINE" python3 "$REPO/benchmarks/bench_power.py" --device cuda \
+          --sizes ${POWER_SIZES:-1M,10M} --repeats 3) 2>&1 | tee "$OUT/bench_power_baseline.log"
+      fi ;;
     graph)  # voronoi_graph and the cells' backward against voronoi (1M, 10M blue and white)
       python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 --profile 2>&1 | tee "$OUT/bench_graph.log" ;;
     compare)

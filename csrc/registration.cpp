@@ -70,7 +70,9 @@ TORCH_LIBRARY(torchvor, m) {
   // second_moment (M,), status (M,) int8 (7: EMPTY), neighbors_needed (M,)
   // int32 (SECURITY_RADIUS_NOT_REACHED: the list was too short), radius (M,)
   // float32, and face_count (M,) int32 (faces on neighbours and walls).
-  // weight_max (B,) float64: the largest weight of each cloud.
+  // weight_max (M,) float64: for each row, no point outside its list that
+  // can cut its cell weighs more (the caller checks that bound's reach:
+  // torchvor/power.py).
   m.def(
       "power_cells(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, Tensor neighbors, "
       "Tensor weight_max, int tier) -> (Tensor volume, Tensor centroid, Tensor second_moment, Tensor status, "

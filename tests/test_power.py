@@ -233,7 +233,7 @@ def test_opcheck_power_ops(device, dtype, gen):
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
     rows = torch.arange(30, device=device)
     lists = torchvor.knn(points, 31, points, exclude_self=False).idx
-    weight_max = weights.double().max().reshape(1)
+    weight_max = weights.double().max().expand(30).contiguous()  # per row: no point weighs more
     torch.library.opcheck(torch.ops.torchvor.power_cells.default,
                           (points, weights, box, None, rows, lists, weight_max, 0))
     counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, lists, weight_max, 0)[6]
@@ -250,7 +250,7 @@ def test_larger_tiers_give_the_same_cells(device, gen):
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
     rows = torch.arange(60, device=device)
     lists = torchvor.knn(points, 61, points, exclude_self=False).idx
-    weight_max = weights.max().reshape(1)
+    weight_max = weights.max().expand(60).contiguous()
     results = [torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, lists, weight_max, tier)
                for tier in range(7)]
     # bit for bit within a processor (tiers 0-1 on the device, 2-3 on the CPU: on CUDA

@@ -43,11 +43,12 @@ def test_periodic_power_cells_match_the_oracle(device, dtype, gen, where, axes, 
     n, box = 150, BOXES[where]
     points = _cloud(n, box, gen, dtype, device)
     weights = _weights(n, box, spread, gen, dtype, device)
-    cells = torchvor.voronoi(points, _box_tensor(box, dtype, device), periodic=axes, weights=weights, k=8)
+    box_tensor = _box_tensor(box, dtype, device)
+    cells = torchvor.voronoi(points, box_tensor, periodic=axes, weights=weights, k=8)
     status = cells.status.cpu().numpy()
     assert set(status.tolist()) <= {int(CellStatus.SUCCESS), int(CellStatus.EMPTY)}
     volume = cells.volume.double().cpu().numpy()
-    lo, hi = (np.array(c) for c in box)
+    lo, hi = box_tensor.double().cpu().numpy()  # the box as given (float32: rounded), whose edges are the periods
     rtol = 1e-9 if dtype == torch.float64 else 1e-5
     assert abs(volume.sum() - np.prod(hi - lo)) <= rtol * np.prod(hi - lo)
     pts, w = points.double().cpu().numpy(), weights.double().cpu().numpy()

@@ -113,6 +113,85 @@ def _weight_max(weights: torch.Tensor, batch: Optional[torch.Tensor], clouds: in
     return torch.where(torch.isfinite(top), top, torch.zeros_like(top))
 
 
+# The weight bounds' first reach is that of a cell of this many mean spacings
+# (about a white-noise cell's radius) where no radius is hinted; a cell that
+# reaches farther runs again with its own reach.
+GUESS = 2.0
+
+
+class _WeightBounds:
+    """Per-row bounds on the weights that can cut a power cell, tighter than its
+    cloud's largest weight: a cell within R of its point is cut only by points
+    within its reach ``R + sqrt(R^2 + max w - w_i)``, so the largest weight
+    within a distance D >= that reach bounds them. The largest weights are
+    kept on a grid of cubes (about GRID_POINTS points each) and dilated a cube
+    at a time; a row of D gets the largest weight within ceil(D / side) cubes.
+    One cloud only (the others keep their cloud's largest weight)."""
+
+    GRID_POINTS = 2
+    MAX_CUBES = 1 << 24  # a coarser grid past it
+    MAX_DILATION = 24  # cubes; past it, the cloud's largest weight
+
+    def __init__(self, points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch, counts):
+        self.top = _weight_max(weights, batch, box.shape[0])  # (B,)
+        self.batch = batch
+        self.local = box.shape[0] == 1 and points.shape[0] > 0
+        if not self.local:
+            return
+        lo, hi = box[0, 0].double(), box[0, 1].double()
+        extent = (hi - lo).clamp_min(0)
+        n = points.shape[0]
+        volume = float(extent.prod())
+        side = (volume * self.GRID_POINTS / n) ** (1.0 / 3.0) if volume > 0 else 0.0
+        side = max(side, float(extent.max()) / 1024, (volume / self.MAX_CUBES) ** (1.0 / 3.0))
+        if not side > 0:
+            self.local = False
+            return
+        self.side, self.lo = side, lo
+        self.shape = [max(1, min(1024, math.ceil(float(e) / side))) for e in extent]
+        self.cube = self._cube_of(points)
+        flat = (self.cube[:, 0] * self.shape[1] + self.cube[:, 1]) * self.shape[2] + self.cube[:, 2]
+        grid = torch.full((math.prod(self.shape),), -math.inf, dtype=torch.float64, device=points.device)
+        self.grid = grid.scatter_reduce(0, flat, weights.double(), "amax").reshape(1, 1, *self.shape)
+
+    def _cube_of(self, points: torch.Tensor) -> torch.Tensor:
+        index = torch.floor((points.double() - self.lo) / self.side).long()
+        return torch.minimum(index.clamp_min(0), torch.tensor(self.shape, device=points.device) - 1)
+
+    def cloud_max(self, rows: torch.Tensor) -> torch.Tensor:
+        """(M,) float64: the rows' clouds' largest weights."""
+        return self.top[self.batch[rows]] if self.batch is not None else self.top[0].expand(rows.numel())
+
+    def bound(self, rows: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+        """(M,) float64: the largest weight within `reach` (M,) of each row's point."""
+        out = self.cloud_max(rows).clone()
+        if not self.local or rows.numel() == 0:
+            return out
+        steps = torch.ceil(reach / self.side + 1e-6)
+        steps = torch.where(torch.isfinite(steps), steps, torch.full_like(steps, math.inf))
+        near = steps <= self.MAX_DILATION
+        if not bool(near.any()):
+            return out
+        steps = steps.clamp(0, self.MAX_DILATION).long()
+        cube = self.cube[rows]
+        grid = self.grid
+        for level in range(int(steps[near].max()) + 1):
+            if level:
+                grid = torch.nn.functional.max_pool3d(grid, 3, stride=1, padding=1)
+            at = near & (steps == level)
+            if bool(at.any()):
+                c = cube[at]
+                out[at] = grid[0, 0, c[:, 0], c[:, 1], c[:, 2]]
+        return out
+
+
+def _power_reach(radius: torch.Tensor, spread: torch.Tensor) -> torch.Tensor:
+    """``R + sqrt(R^2 + spread)``: no point farther can cut a power cell within
+    R of its point whose weight is `spread` below the largest that can."""
+    r = radius.double()
+    return r + torch.sqrt(r * r + spread.clamp_min(0))
+
+
 def _lists(points, batch, chunk_rows, k, cached: Optional[torch.Tensor] = None):
     """The k nearest points of each row's point (itself among them), -1 padded:
     the first k columns of `cached` (every row's list, longer) where it holds them."""
@@ -139,18 +218,21 @@ def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
 def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
                 k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
                 faces: bool = False, lists: Optional[torch.Tensor] = None,
-                rows: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
+                rows: Optional[torch.Tensor] = None,
+                radius_hint: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
     """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
     ``lists``: every point's neighbour list (:func:`every_list`), to slice
     instead of searching where it is long enough. ``rows``: (M,) int64, the
     points whose cells to compute (default all); the others come back
-    NOT_COMPUTED (NaN outputs, no faces).
+    NOT_COMPUTED (NaN outputs, no faces). ``radius_hint``: (N,) the radii
+    the cells likely have (the last ones of points whose weights moved a
+    little), for the first reach of their weight bounds (_WeightBounds).
 
     Returns :class:`VoronoiCells` (N,) (status EMPTY for an empty cell) and,
     with ``faces``, every computed cell's :class:`PowerFaces`. Not differentiable.
     """
     with torch.no_grad():
-        return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists, rows)
+        return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists, rows, radius_hint)
 
 
 def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> torch.Tensor:
@@ -168,11 +250,12 @@ def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torc
     return torch.argsort(key)
 
 
-def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=None, rows=None):
+def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=None, rows=None, radius_hint=None):
     n = points.shape[0]
     device = points.device
     box, counts = _clouds(points, box, batch)
-    weight_max = _weight_max(weights, batch, box.shape[0])
+    bounds = _WeightBounds(points, weights, box, batch, counts)
+    w64 = weights.double()
     whole = int(counts.max()) + 1 if n else 1  # a list this long ends in padding: the whole cloud
     volume = points.new_full((n,), math.nan)
     centroid = points.new_full((n, 3), math.nan)
@@ -183,10 +266,18 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
     face_count = torch.zeros(n, dtype=torch.int32, device=device)
     row_k = torch.zeros(n, dtype=torch.int64, device=device)
     row_tier = torch.zeros(n, dtype=torch.int64, device=device)
+    row_reach = torch.zeros(n, dtype=torch.float64, device=device)  # the reach each row's bound holds for
+    row_bound = torch.zeros(n, dtype=torch.float64, device=device)  # weight_max: the bound within it
+
+    def aim(pending, r):
+        """The rows `pending` bounded for cells of radius `r` (M,) (a tenth more)."""
+        row_reach[pending] = 1.1 * _power_reach(r, bounds.cloud_max(pending) - w64[pending])
+        row_bound[pending] = bounds.bound(pending, row_reach[pending])
 
     def run(pending):
-        """Computes the cells of `pending` (at their row_k and row_tier) until
-        none asks for a retry."""
+        """Computes the cells of `pending` (at their row_k, row_tier and
+        row_bound) until none asks for a retry; a cell that stopped on a
+        bound whose reach falls short of its own runs again with its reach."""
         while pending.numel():
             pass_key = row_k[pending] * (LAST_TIER + 1) + row_tier[pending]  # (k, tier) as one key
             retry = []
@@ -196,7 +287,7 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
                 for rows in _chunks(group, kk, memory_budget):
                     lists = _lists(points, batch, rows, kk, cached)
                     out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, rows, lists,
-                                                                 weight_max, tier)
+                                                                 row_bound[rows], tier)
                     for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
                         target[rows] = value
                 code = status[group].long()
@@ -207,7 +298,15 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
                 row_k[group[longer]] = min(2 * kk, whole)
                 row_tier[group[larger]] = tier + 1
                 row_tier[group[wider]] = DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER)
-                retry.append(group[longer | larger | wider])
+                # the bound held where nothing past its reach could cut: the cell's own reach within it
+                # (an empty cell stays empty, a whole cloud's list holds every point)
+                stopped = code == int(CellStatus.SUCCESS)
+                own = _power_reach(radius[group], bounds.cloud_max(group) - w64[group])
+                short = stopped & (own > row_reach[group]) & (row_bound[group] < bounds.cloud_max(group)) & \
+                    (kk < whole)
+                if bool(short.any()):
+                    aim(group[short], radius[group[short]])
+                retry.append(group[longer | larger | wider | short])
             pending = torch.cat(retry) if retry else pending[:0]
 
     order = _spatial_order(points, box, batch) if n else torch.arange(0, device=device)
@@ -215,6 +314,11 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
         asked = torch.zeros(n, dtype=torch.bool, device=device)
         asked[rows] = True
         order = order[asked[order]]
+    # the bounds' first reach: the hinted radii, or GUESS spacings
+    spacing = ((box[:, 1] - box[:, 0]).double().clamp_min(0).prod(1) / counts.clamp_min(1)) ** (1.0 / 3.0)
+    guess = GUESS * (spacing[batch] if batch is not None else spacing[0].expand(n))
+    aim(order, guess[order] if radius_hint is None else radius_hint.double()[order].nan_to_num(0).maximum(
+        0.5 * guess[order]))
     if k is not None:
         first_k = min(max(int(k), 1), whole)
     elif order.numel() > PILOT_FROM:
@@ -234,12 +338,12 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
     cells = VoronoiCells(volume, centroid, second, status, needed, radius)
     if not faces:
         return cells, None
-    return cells, _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget, cached)
+    return cells, _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget, cached)
 
 
-def _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count, memory_budget,
+def _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget,
            cached=None) -> PowerFaces:
-    """The faces of the cells with faces, computed again at their last pass's k and tier."""
+    """The faces of the cells with faces, computed again at their last pass's k, tier and bound."""
     device = points.device
     with_faces = torch.nonzero(face_count > 0).flatten()
     parts = []
@@ -252,7 +356,7 @@ def _faces(points, weights, box, batch, weight_max, row_k, row_tier, face_count,
             counts = face_count[rows].long()
             offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
             target, area, centroid, inertia = torch.ops.torchvor.power_faces.default(
-                points, weights, box, batch, rows, lists, weight_max, tier, offsets)
+                points, weights, box, batch, rows, lists, row_bound[rows], tier, offsets)
             parts.append((rows.repeat_interleave(counts), target, area, centroid, inertia))
     if not parts:
         empty = torch.empty(0, dtype=torch.int64, device=device)
@@ -548,13 +652,16 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         return PowerWeights(weights.to(points.dtype), 0, 0.0, cells)
 
     lists = None  # every point's list, as long as the cells so far needed (and a quarter more)
+    hint = None  # the last cells' radii
     first_k = k  # then what 98% of the last cells needed (plus 2): no pilot
 
     def evaluate(w, faces):
         """(cells, faces for _jacobian or None, volumes): the power diagram of weights w."""
-        nonlocal lists, first_k
+        nonlocal lists, first_k, hint
         if pbox is None:
-            cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists)
+            cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists,
+                                       radius_hint=hint)
+            hint = cells.radius
             longest = min(int(cells.neighbors_needed.max()) + 1, n + 1)
             if lists is None or lists.shape[1] < longest:
                 lists = every_list(work, None, min(longest * 5 // 4 + 8, n + 1), memory_budget)

@@ -35,7 +35,7 @@ TV_HD bool power_plane_misses(T r2, T shift, T radius2) {
 
 // `neighbors`: k global indices sorted by distance to the seed, -1 after the
 // last point of its cloud (the seed itself may be among them). `box`: lo, hi.
-// `weight_max`: the largest weight of the seed's cloud.
+// `weight_max`: no point outside the list that can cut the cell weighs more.
 template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
                                           const int64_t* neighbors, int64_t k, const io_t* box, T weight_max,

@@ -48,7 +48,7 @@ struct PowerCellFunctor {
   const int64_t* rows;        // (M,)
   const int64_t* neighbors;   // (M, k)
   int64_t k;
-  const double* weight_max;   // (B,)
+  const double* weight_max;   // (M,)
   io_t* volume;               // (M,)
   io_t* centroid;             // (M, 3)
   io_t* second_moment;        // (M,)
@@ -81,7 +81,7 @@ struct PowerCellFunctor {
     const int64_t seed = rows[m];
     const int64_t b = batch != nullptr ? batch[seed] : 0;
     const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
-        cell, points, weights, seed, neighbors + m * k, k, box + 6 * b, T(weight_max[b]),
+        cell, points, weights, seed, neighbors + m * k, k, box + 6 * b, T(weight_max[m]),
         T(core::ClipTolerance<T>::value));
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
@@ -142,8 +142,8 @@ inline void check_power_inputs(const at::Tensor& points, const at::Tensor& weigh
                     "torchvor.power_cells: rows must be (M,) and neighbors (M, k), got ", rows.sizes(), " and ",
                     neighbors.sizes());
   TORCH_CHECK_TYPE(weight_max.scalar_type() == at::kDouble, "torchvor.power_cells: weight_max must be float64");
-  TORCH_CHECK_VALUE(weight_max.dim() == 1 && weight_max.size(0) == box.size(0),
-                    "torchvor.power_cells: weight_max must be (B,), one per box");
+  TORCH_CHECK_VALUE(weight_max.dim() == 1 && weight_max.size(0) == rows.size(0),
+                    "torchvor.power_cells: weight_max must be (M,), one per row");
   if (batch.has_value()) {
     TORCH_CHECK_VALUE(batch->scalar_type() == at::kLong && batch->dim() == 1 && batch->size(0) == points.size(0),
                       "torchvor.power_cells: batch must be (N,) int64");
