@@ -181,7 +181,7 @@ def test_periodic_power_lloyd(device, gen):
     assert bool(((moved >= lo) & (moved < hi)).all())
     assert weights.shape == (n,)
     via_lloyd = torchvor.lloyd(points, boxt, 3, volumes=volumes, periodic=True)
-    torch.testing.assert_close(via_lloyd, moved, rtol=0, atol=0)
+    torch.testing.assert_close(via_lloyd, moved, rtol=0, atol=0 if device.type == "cpu" else 1e-12)
     cells = torchvor.voronoi(moved, boxt, periodic=True)
     plain = torchvor.voronoi(points, boxt, periodic=True)
     # relaxation evens the cells out: the energy falls

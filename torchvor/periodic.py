@@ -131,16 +131,19 @@ def _per_point(values: torch.Tensor, batch: Optional[torch.Tensor], n: int) -> t
 
 def wrap(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor]) -> torch.Tensor:
     """The points moved into [lo, hi) along the periodic axes by whole periods
-    (the others as given). The shift is a constant: gradients pass unchanged."""
+    (the others as given); a point on hi goes to lo exactly (the same point of
+    the torus: lo + (hi - lo) can round away from hi). The shift is a
+    constant: gradients pass unchanged."""
     n = points.shape[0]
     lo = _per_point(pbox.box[:, 0], batch, n)
     period = _per_point(pbox.period, batch, n)
     with torch.no_grad():
         periodic = period > 0
         below = _per_point(torch.where(pbox.period > 0, pbox.box[:, 0], -math.inf), batch, n)
-        above = _per_point(torch.where(pbox.period > 0, pbox.box[:, 0] + pbox.period, math.inf), batch, n)
+        above = _per_point(torch.where(pbox.period > 0, pbox.box[:, 1], math.inf), batch, n)
         if bool(((points >= below) & (points < above)).all()):
             return points  # inside already (the usual case): the same tensor
+        on_hi = periodic & (points == above)
         safe = torch.where(periodic, period, torch.ones_like(period))
         turns = torch.where(periodic, torch.floor((points - lo) / safe), torch.zeros_like(points))
         moved = points - turns * period
@@ -151,8 +154,8 @@ def wrap(points: torch.Tensor, pbox: PeriodicBox, batch: Optional[torch.Tensor])
         offset = turns * period
     inside = points - offset
     with torch.no_grad():  # a last rounding at hi: the point at lo is the same point
-        at_hi = periodic & (inside >= hi)
-    return torch.where(at_hi, lo.expand_as(inside), inside)
+        at_hi = on_hi | (periodic & (inside >= hi))
+    return torch.where(at_hi, lo + (points - points.detach()), inside)
 
 
 class Padded(NamedTuple):

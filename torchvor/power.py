@@ -299,11 +299,10 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
                 row_tier[group[larger]] = tier + 1
                 row_tier[group[wider]] = DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER)
                 # the bound held where nothing past its reach could cut: the cell's own reach within it
-                # (an empty cell stays empty, a whole cloud's list holds every point)
+                # (an empty cell stays empty; a cell may stop on a short bound before its list's end)
                 stopped = code == int(CellStatus.SUCCESS)
                 own = _power_reach(radius[group], bounds.cloud_max(group) - w64[group])
-                short = stopped & (own > row_reach[group]) & (row_bound[group] < bounds.cloud_max(group)) & \
-                    (kk < whole)
+                short = stopped & (own > row_reach[group]) & (row_bound[group] < bounds.cloud_max(group))
                 if bool(short.any()):
                     aim(group[short], radius[group[short]])
                 retry.append(group[longer | larger | wider | short])
@@ -532,7 +531,10 @@ def _conjugate_gradient(edge_index, coefficient, diagonal, rhs, rtol: float, max
         if float(r.norm()) <= stop:
             break
         q = _laplacian_apply(edge_index, coefficient, p)
-        alpha = rz / torch.dot(p, q)
+        curvature = torch.dot(p, q)
+        if not float(curvature) > 0:  # p in J's null space (rounding): no further descent
+            break
+        alpha = rz / curvature
         x = x + alpha * p
         r = r - alpha * q
         z = inverse * r
@@ -684,6 +686,14 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         return cells, found, volume
 
     cells, faces, volume = evaluate(weights, True)
+    # Newton needs every cell nonempty (its Jacobian is then a connected graph's
+    # Laplacian): a start that empties a cell is halved towards zero weights
+    # (the Voronoi diagram), whose cells are all nonempty.
+    for _halving in range(60):
+        if bool((volume > 0).all()):
+            break
+        weights = weights / 2 if _halving < 59 else torch.zeros_like(weights)
+        cells, faces, volume = evaluate(weights, True)
     floor = 0.5 * min(float(volume.min()), float(target.min()))
     error = float(((volume - target).abs() / target).max())
     iterations = 0
