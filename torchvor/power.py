@@ -132,7 +132,7 @@ class _WeightBounds:
     MAX_CUBES = 1 << 24  # a coarser grid past it
     MAX_DILATION = 24  # cubes; past it, the cloud's largest weight
 
-    def __init__(self, points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch, counts):
+    def __init__(self, points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch):
         self.top = _weight_max(weights, batch, box.shape[0])  # (B,)
         self.batch = batch
         self.local = box.shape[0] == 1 and points.shape[0] > 0
@@ -254,7 +254,7 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
     n = points.shape[0]
     device = points.device
     box, counts = _clouds(points, box, batch)
-    bounds = _WeightBounds(points, weights, box, batch, counts)
+    bounds = _WeightBounds(points, weights, box, batch)
     w64 = weights.double()
     whole = int(counts.max()) + 1 if n else 1  # a list this long ends in padding: the whole cloud
     volume = points.new_full((n,), math.nan)
