@@ -599,7 +599,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         progress: print each iteration's error and step.
         memory_budget: as :func:`torchvor.voronoi`.
         weights: (N,) the weights to start from (default zeros: the Voronoi
-            diagram), e.g. the previous solution of points that moved a little.
+            diagram), e.g. the previous solution of points that moved a little;
+            halved towards zero while it empties a cell.
         periodic: as :func:`torchvor.voronoi` (the box required): the power
             diagram on the torus, whose cells share the box's volume.
 
