@@ -737,11 +737,12 @@ def _reach(own: VoronoiCells, power: Optional[_PowerReach] = None) -> torch.Tens
     within ``R + sqrt(R^2 + w_j - w_i)``), and for an empty one
     _PowerReach.empty_reach."""
     from .ops import CellStatus
+    from .power import _power_reach
 
     r = own.radius.detach().double()
     if power is None:
         return 2 * r * (1 + CERTIFY_SLACK)
-    reach = r + torch.sqrt(r * r + power.spread)
+    reach = _power_reach(r, power.spread)
     empty = own.status == CellStatus.EMPTY
     if bool(empty.any()):
         reach = torch.where(empty, power.empty_reach(), reach)
