@@ -159,7 +159,9 @@ def extension():
     for folder in ("ops", "cpu"):
         sources += [os.path.relpath(p, here) for p in sorted(glob.glob(os.path.join(here, "csrc", folder, "*.cpp")))]
     # -fopenmp on compile and link: without it at::parallel_for silently runs on one thread.
-    cxx = ["-O3", "-std=c++17", "-fopenmp", "-g0"]
+    # -fno-math-errno: sqrt on a pack of lanes vectorises (core/host_packs.h); -Wno-psabi: those
+    # packs are 32-byte vectors, always inlined, never passed across a call.
+    cxx = ["-O3", "-std=c++17", "-fopenmp", "-fno-math-errno", "-Wno-psabi", "-g0"]
     link = ["-fopenmp"]
     if not want_cuda():
         print("torchvor: building the CPU backend only")

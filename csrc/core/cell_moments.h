@@ -6,6 +6,7 @@
 
 #include "common.h"
 #include "double_double.h"
+#include "host_packs.h"
 
 namespace torchvor {
 namespace core {
@@ -45,7 +46,11 @@ struct CellMoments {
 
   // Whether the cell weighs its tetrahedra by their vertices' rounding
   // (float and double; not double-double, the last resort).
-  static constexpr bool kConditioned = std::is_same<T, float>::value || std::is_same<T, double>::value;
+  static constexpr bool kConditioned =
+      std::is_same<T, float>::value || std::is_same<T, double>::value || IsPack<T>::value;
+  // The rounding weights' type (add_vertex): float for a scalar cell, the
+  // pack's own lanes for a pack of vertices.
+  using Weight = typename std::conditional<IsPack<T>::value, T, float>::type;
 
   TV_HD static CellMoments zero() { return {T(0), T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
 
@@ -75,24 +80,25 @@ struct CellMoments {
     // volume to move; a vertex at the seed, no rounding to move it.
     // The weights are ratios of lengths (|v| / (sine h) >= 1), kept in float:
     // in double they are three more register pairs across the tetrahedra.
-    float weight[3] = {0.0f, 0.0f, 0.0f};
+    Weight weight[3] = {Weight(0), Weight(0), Weight(0)};
     if constexpr (kConditioned) {
       T inverse_h[3], inverse_norms = T(1);
       TV_UNROLL
       for (int e = 0; e < 3; ++e) {
-        inverse_h[e] = feet2[e] > T(0) ? rsqrt_of(feet2[e]) : T(0);
+        inverse_h[e] = select(feet2[e] > T(0), rsqrt_of(feet2[e]), T(0));
         if constexpr (kGeneralPlanes) {
           inverse_norms *= rsqrt_of(dot(planes[e].normal, planes[e].normal));
         } else {
-          inverse_norms *= dot(planes[e].normal, planes[e].normal) == T(1) ? T(1) : T(0.5) * inverse_h[e];
+          inverse_norms *= select(dot(planes[e].normal, planes[e].normal) == T(1), T(1), T(0.5) * inverse_h[e]);
         }
       }
       const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
-      const T sine = (det < T(0) ? -det : det) * inverse_norms;
+      const T sine = select(det < T(0), -det, det) * inverse_norms;
       // |v| / sine; Inf or NaN where the planes are degenerate
-      const T length = vertex.radius2 > T(0) ? vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine) : T(0);
+      const T length =
+          select(vertex.radius2 > T(0), vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine), T(0));
       TV_UNROLL
-      for (int e = 0; e < 3; ++e) weight[e] = static_cast<float>(length * inverse_h[e]);
+      for (int e = 0; e < 3; ++e) weight[e] = static_cast<Weight>(length * inverse_h[e]);
     }
     TV_UNROLL
     for (int e = 0; e < 3; ++e) {
@@ -123,8 +129,7 @@ struct CellMoments {
   // branch to a division for planes of neither kind: it slows the warp cell.)
   TV_HD static Vec3<T> plane_foot(const Plane<T>& p) {
     if constexpr (kGeneralPlanes) return (-p.offset / dot(p.normal, p.normal)) * p.normal;
-    const bool unit_normal = dot(p.normal, p.normal) == T(1);
-    return (unit_normal ? -p.offset : T(-0.5)) * p.normal;
+    return select(dot(p.normal, p.normal) == T(1), -p.offset, T(-0.5)) * p.normal;
   }
 
   // Orthogonal projection of the seed onto the line where planes a, b meet,
@@ -143,7 +148,7 @@ struct CellMoments {
   TV_HD T add_tetrahedron(Vec3<T> f, T f2, Vec3<T> edge_cross_v, Vec3<T> edge_plus_v, T edge_v2, T sign) {
     const T six_vol = sign * dot(f, edge_cross_v);
     const Vec3<T> sum = f + edge_plus_v;
-    const T absolute = six_vol < T(0) ? -six_vol : six_vol;
+    const T absolute = select(six_vol < T(0), -six_vol, six_vol);
     six_volume += six_vol;
     unsigned_six_volume += absolute;
     m1 = m1 + six_vol * sum;

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 
 #if defined(__CUDACC__)
 #define TV_HD __host__ __device__ __forceinline__
@@ -241,6 +242,14 @@ template <typename T>
 TV_HD T min_of(T a, T b) { return a < b ? a : b; }
 template <typename T>
 TV_HD T max_of(T a, T b) { return a < b ? b : a; }
+// Whether T is a pack of scalars (host_packs.h) rather than one scalar.
+template <typename T>
+struct IsPack : std::false_type {};
+
+// a if `condition`, else b: the scalar form of a pack's lane-by-lane select
+// (host_packs.h), so that formulas written with it run on both.
+template <typename T>
+TV_HD T select(bool condition, T a, T b) { return condition ? a : b; }
 
 }  // namespace core
 }  // namespace torchvor

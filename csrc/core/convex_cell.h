@@ -17,6 +17,7 @@
 #include "double_double.h"
 #include "exact_predicates.h"
 #include "lanes.h"
+#include "packed_vertices.h"
 #include "status.h"
 
 namespace torchvor {
@@ -453,15 +454,22 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
       origin = (T(1) / T(num_triangles > 0 ? num_triangles : 1)) * origin;
     }
     CellMoments<T, kWeighted> moments = CellMoments<T, kWeighted>::zero();
-    for (int t = 0; t < num_triangles; ++t) {
-      const Corners corners = triangle.corners(t);
-      Vec3<T> position = triangle.position(t);
-      Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
-      if constexpr (kWeighted) {
-        position = position - origin;
-        for (int e = 0; e < 3; ++e) planes[e].offset += dot(planes[e].normal, origin);
+#if defined(TORCHVOR_HOST_PACKS)
+    if constexpr (packs_vertices<T>()) {
+      moments = add_vertices_packed<kWeighted>(*this, origin);
+    } else
+#endif
+    {
+      for (int t = 0; t < num_triangles; ++t) {
+        const Corners corners = triangle.corners(t);
+        Vec3<T> position = triangle.position(t);
+        Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
+        if constexpr (kWeighted) {
+          position = position - origin;
+          for (int e = 0; e < 3; ++e) planes[e].offset += dot(planes[e].normal, origin);
+        }
+        moments.add_vertex(planes, {position, squared_norm(position)});
       }
-      moments.add_vertex(planes, {position, squared_norm(position)});
     }
     moments.finish(volume, first_moment, second_moment, rounding);
     if constexpr (kWeighted) {  // back to moments about the seed
@@ -576,6 +584,9 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
       return classify_exactly(p, shift, clipped, kept_radius2);
 #endif
     }
+#if defined(TORCHVOR_HOST_PACKS)
+    if constexpr (packs_vertices<T>()) return classify_packed(*this, p, threshold, clipped, kept_radius2);
+#endif
     uint32_t any_clipped = 0u;
     kept_radius2 = T(0);
     TV_UNROLL
