@@ -35,7 +35,8 @@ def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
     else:  # the cores shared among the ranks
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // ranks))
     dist.init_process_group("nccl" if args.device == "cuda" else "gloo", rank=rank, world_size=ranks,
-                            timeout=datetime.timedelta(seconds=900))
+                            timeout=datetime.timedelta(seconds=900),
+                            device_id=device if args.device == "cuda" else None)
     dtype = getattr(torch, args.dtype)
     points, _ = common.make_points(args.kind, n, seed=args.seed, dtype=dtype, device=torch.device("cpu"),
                                    cache_dir=args.cache_dir, blue_iters=args.blue_iters)

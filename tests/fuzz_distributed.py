@@ -134,8 +134,10 @@ def worker(rank: int, size: int, port: int, args, report: str) -> None:
         device = f"cuda:{rank % torch.cuda.device_count()}"
         torch.cuda.set_device(device)
     # a rank left waiting fails after this (an exception on one rank only)
+    # NCCL told its rank's GPU: guessed from the rank, it warns of a possible hang
     dist.init_process_group("nccl" if device != "cpu" else "gloo", rank=rank, world_size=size,
-                            timeout=datetime.timedelta(seconds=args.collective_timeout))
+                            timeout=datetime.timedelta(seconds=args.collective_timeout),
+                            device_id=torch.device(device) if device != "cpu" else None)
     lines = []
     tally = {"bitwise": 0, "rounding": 0}
     for index in range(args.start, args.start + args.cases):
