@@ -112,7 +112,7 @@ def main():
             common.log(f"{args.kind} n={total} ranks={ranks}: {common.fmt_s(seconds)}")
     ratio_name = "time / first" if args.weak else "speedup"
     common.print_results("torchvor.distributed.voronoi", ["points", "n", "ranks", "time", ratio_name,
-                                                          "peak per rank", "failed"], rows,
+                                                          "peak per rank (MiB)", "failed"], rows,
                          [f"{args.dtype}, unit cube, default k; the slowest rank's median of {args.repeats} after "
                           f"{args.warmup} warm-up; shares {'spatial' if args.spatial else 'in stored order'}; "
                           "1 rank: the plain call"])

@@ -12,7 +12,6 @@
 #if !defined(__CUDACC__) && defined(__GNUC__)
 #define TORCHVOR_HOST_PACKS 1
 
-#include <cstring>
 #include <type_traits>
 
 namespace torchvor {
@@ -50,12 +49,6 @@ struct Pack {
   TV_HD static Pack of(Vector v) {
     Pack p;
     p.lanes = v;
-    return p;
-  }
-  // kWidth values from `from` (no alignment needed).
-  TV_HD static Pack load(const F* from) {
-    Pack p;
-    memcpy(&p.lanes, from, sizeof p.lanes);
     return p;
   }
   TV_HD F sum() const {  // lane 0 + lane 1 + ... in that order
