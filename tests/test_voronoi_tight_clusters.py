@@ -167,3 +167,24 @@ def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
     assert cells.status[5].item() == CellStatus.SUCCESS
     assert cells.volume[5].item() == pytest.approx(reference.volume[5].item(), rel=1e-5, abs=0)
     assert cells.second_moment[5].item() == pytest.approx(reference.second_moment[5].item(), rel=1e-5, abs=0)
+
+
+def test_float32_cell_beside_nearly_parallel_bisectors_keeps_its_radius(device, cells_impl):
+    """Close pairs 1-4 ulps apart (fuzz seed 34, case 7; cell 17488 among its
+    80 nearest points): the seed's partner lies 2.7e-7 away, and two other
+    close pairs put vertices of nearly parallel bisectors (sine 2e-5) beside
+    it. Clipped in float32, a later cut fell on the wrong side of such a
+    vertex, and the cell kept a sliver spike 0.016 outside the partner's
+    bisector: its radius 2.3% over the exact cell's, its volume within 1e-7.
+    Such a cell must go to float64 (VertexSineLimit): radius within 1e-3."""
+    import fuzz_cases  # the fuzzer's generator (tests/fuzz_cases.py)
+
+    case = fuzz_cases.make_case(34, 7, max_n=200000, dtype="float32")
+    x = case.points
+    near = np.argsort(((x - x[17488]) ** 2).sum(1), kind="stable")[:80]
+    lohi = (case.boxes[0, 0], case.boxes[0, 1])
+    exact = voronoi_cell_oracle(x[near], 0, lohi)
+    cells = run(torch.tensor(x[near], dtype=torch.float32, device=device), tuple(b.tolist() for b in lohi))
+    assert cells.status[0].item() == CellStatus.SUCCESS
+    assert cells.radius[0].item() == pytest.approx(exact.radius, rel=1e-3)
+    assert cells.volume[0].item() == pytest.approx(exact.volume, rel=1e-4)

@@ -182,6 +182,35 @@ TV_HD bool rounding_could_cut(T value, T band2) {
   return scaled * scaled < band2;
 }
 
+// Bisectors of two neighbours in nearly the same direction at nearly the
+// same distance (a close pair, a few ulps apart, beside the seed) meet at a
+// small sine s along a line through the cell. The tolerance band around
+// each (ClipTolerance: tol |r|) then spans about tol |r| / s along that line,
+// and the cell can keep a needle of no volume that far past its exact end:
+// a float cell beside two such pairs reached 31% past its exact radius, its
+// volume within 3e-7. float: s under 4e-3 (a needle under 1e-3 of the
+// radius), where the planes cross within twice the cell's radius, makes the
+// cell recomputed wider (kIllConditioned). a, b: neighbours relative to the
+// seed, consecutive in the sorted list (a close pair's two points are),
+// a2 = |a|^2 <= b2 = |b|^2; radius2: the cell's before b clips it.
+template <typename T>
+TV_HD bool nearly_coincident_bisectors(Vec3<T> a, T a2, Vec3<T> b, T b2, T radius2) {
+  if constexpr (std::is_same<T, float>::value) {
+    if (!(a2 > T(0)) || !(dot(a, b) > T(0))) return false;
+    const T unit = rsqrt_of(a2);  // lengths in units of |a|: no underflow for tiny cells
+    const Vec3<T> c = cross(unit * a, unit * b);
+    const T c2 = dot(c, c);        // s^2 |b|^2 / |a|^2
+    const T w2 = b2 * unit * unit;  // |b|^2 / |a|^2
+    constexpr T kSine = T(4e-3);
+    if (!(c2 < kSine * kSine * w2)) return false;
+    // The planes lie (|b| - |a|) / 2 <= d / 4 apart (d = w2 - 1), so they
+    // cross within 2 R where d^2 / 16 <= 4 s^2 R^2, in units of |a|.
+    const T d = (b2 - a2) * unit * unit;
+    return d * d * w2 <= T(64) * c2 * (radius2 * unit * unit);
+  }
+  return false;
+}
+
 // A new vertex lies on an edge of the cell it cuts, so within that cell's
 // radius. One beyond it (by more than rounding: a thousandth) was put on a
 // line where two planes meet only at a point of the cell: a vertex where
