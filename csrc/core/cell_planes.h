@@ -188,21 +188,26 @@ TV_HD bool rounding_could_cut(T value, T band2) {
 // each (ClipTolerance: tol |r|) then spans about tol |r| / s along that line,
 // and the cell can keep a needle of no volume that far past its exact end:
 // a float cell beside two such pairs reached 31% past its exact radius, its
-// volume within 3e-7. float: s under 4e-3 (a needle under 1e-3 of the
+// volume within 3e-7. float: s under 1e-3 (a needle under 4e-3 of the
 // radius), where the planes cross within twice the cell's radius, makes the
-// cell recomputed wider (kIllConditioned). a, b: neighbours relative to the
+// cell recomputed wider (kIllConditioned); exactly parallel planes never
+// cross. a, b: neighbours relative to the
 // seed, consecutive in the sorted list (a close pair's two points are),
 // a2 = |a|^2 <= b2 = |b|^2; radius2: the cell's before b clips it.
 template <typename T>
 TV_HD bool nearly_coincident_bisectors(Vec3<T> a, T a2, Vec3<T> b, T b2, T radius2) {
   if constexpr (std::is_same<T, float>::value) {
+    // Crossing within 2 R at a sine under 1e-3 needs |b|^2 - |a|^2 under
+    // 8e-3 R |a| (below): a test without a root for most pairs.
+    const T gap = b2 - a2;
+    if (gap * gap > T(6.4e-5) * radius2 * a2) return false;
     if (!(a2 > T(0)) || !(dot(a, b) > T(0))) return false;
     const T unit = rsqrt_of(a2);  // lengths in units of |a|: no underflow for tiny cells
     const Vec3<T> c = cross(unit * a, unit * b);
     const T c2 = dot(c, c);        // s^2 |b|^2 / |a|^2
     const T w2 = b2 * unit * unit;  // |b|^2 / |a|^2
-    constexpr T kSine = T(4e-3);
-    if (!(c2 < kSine * kSine * w2)) return false;
+    constexpr T kSine = T(1e-3);
+    if (!(c2 > T(0) && c2 < kSine * kSine * w2)) return false;
     // The planes lie (|b| - |a|) / 2 <= d / 4 apart (d = w2 - 1), so they
     // cross within 2 R where d^2 / 16 <= 4 s^2 R^2, in units of |a|.
     const T d = (b2 - a2) * unit * unit;
