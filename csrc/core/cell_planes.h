@@ -191,9 +191,9 @@ TV_HD bool rounding_could_cut(T value, T band2) {
 // volume within 3e-7. float: s under 1e-3 (a needle under 4e-3 of the
 // radius), where the planes cross within twice the cell's radius, makes the
 // cell recomputed wider (kIllConditioned); exactly parallel planes never
-// cross. a, b: neighbours relative to the
-// seed, consecutive in the sorted list (a close pair's two points are),
-// a2 = |a|^2 <= b2 = |b|^2; radius2: the cell's before b clips it.
+// cross. a, b: neighbours relative to the seed, consecutive in the sorted
+// list (a close pair's two points are), a2 = |a|^2 <= b2 = |b|^2; radius2:
+// the cell's before b clips it.
 template <typename T>
 TV_HD bool nearly_coincident_bisectors(Vec3<T> a, T a2, Vec3<T> b, T b2, T radius2) {
   if constexpr (std::is_same<T, float>::value) {
@@ -210,7 +210,7 @@ TV_HD bool nearly_coincident_bisectors(Vec3<T> a, T a2, Vec3<T> b, T b2, T radiu
     if (!(c2 > T(0) && c2 < kSine * kSine * w2)) return false;
     // The planes lie (|b| - |a|) / 2 <= d / 4 apart (d = w2 - 1), so they
     // cross within 2 R where d^2 / 16 <= 4 s^2 R^2, in units of |a|.
-    const T d = (b2 - a2) * unit * unit;
+    const T d = gap * unit * unit;
     return d * d * w2 <= T(64) * c2 * (radius2 * unit * unit);
   }
   return false;
