@@ -214,7 +214,6 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
     out.status = kSecurityRadiusNotReached;  // unless the loop below proves otherwise
     out.neighbors = k;
     Vec3<T> previous = {T(0), T(0), T(0)};
-    T previous2 = T(0);
     for (int32_t n = 0; n < k; ++n) {
       int32_t j;
       Vec3<T> r;  // the neighbour relative to the seed
@@ -239,15 +238,13 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
       // bisector twice: clip once.
       if (n > 0 && r.x == previous.x && r.y == previous.y && r.z == previous.z) continue;
       const Vec3<T> before = previous;
-      const T before2 = previous2;
       previous = r;
-      previous2 = r2;
       if (cell.security_radius_reached(r2)) {
         out.status = kSuccess;
         out.neighbors = n;
         break;
       }
-      if (nearly_coincident_bisectors(before, before2, r, r2, cell.largest_radius2())) {
+      if (nearly_coincident_bisectors(before, dot(before, before), r, r2, cell.largest_radius2())) {
         out.status = kIllConditioned;
         out.neighbors = n + 1;
         break;
