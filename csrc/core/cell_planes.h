@@ -192,15 +192,17 @@ TV_HD bool rounding_could_cut(T value, T band2) {
 // radius), where the planes cross within twice the cell's radius, makes the
 // cell recomputed wider (kIllConditioned); exactly parallel planes never
 // cross. a, b: neighbours relative to the seed, consecutive in the sorted
-// list (a close pair's two points are), a2 = |a|^2 <= b2 = |b|^2; radius2:
+// list (a close pair's two points are), |a| <= |b|, b2 = |b|^2; radius2:
 // the cell's before b clips it.
 template <typename T>
-TV_HD bool nearly_coincident_bisectors(Vec3<T> a, T a2, Vec3<T> b, T b2, T radius2) {
+TV_HD bool nearly_coincident_bisectors(Vec3<T> a, Vec3<T> b, T b2, T radius2) {
   if constexpr (std::is_same<T, float>::value) {
-    // Crossing within 2 R at a sine under 1e-3 needs |b|^2 - |a|^2 under
-    // 8e-3 R |a| (below): a test without a root for most pairs.
-    const T gap = b2 - a2;
-    if (gap * gap > T(6.4e-5) * radius2 * a2) return false;
+    // Crossing within 2 R at a sine s under 1e-3 needs |b| - |a| <= 4 s R
+    // (below), so |b - a|^2 <= 16 s^2 R^2 + s^2 |b|^2: a test without a root
+    // (with a margin) that almost every pair fails, the same way each time.
+    const Vec3<T> apart = b - a;
+    if (dot(apart, apart) > T(2e-5) * radius2 + T(1.1e-6) * b2) return false;
+    const T a2 = dot(a, a);
     if (!(a2 > T(0)) || !(dot(a, b) > T(0))) return false;
     const T unit = rsqrt_of(a2);  // lengths in units of |a|: no underflow for tiny cells
     const Vec3<T> c = cross(unit * a, unit * b);
@@ -210,7 +212,7 @@ TV_HD bool nearly_coincident_bisectors(Vec3<T> a, T a2, Vec3<T> b, T b2, T radiu
     if (!(c2 > T(0) && c2 < kSine * kSine * w2)) return false;
     // The planes lie (|b| - |a|) / 2 <= d / 4 apart (d = w2 - 1), so they
     // cross within 2 R where d^2 / 16 <= 4 s^2 R^2, in units of |a|.
-    const T d = gap * unit * unit;
+    const T d = (b2 - a2) * unit * unit;
     return d * d * w2 <= T(64) * c2 * (radius2 * unit * unit);
   }
   return false;

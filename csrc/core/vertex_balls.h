@@ -290,8 +290,7 @@ TV_HD int8_t finish_by_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& wher
     further = 0;
     for (int i = 0; i < count; ++i) {
       if (cell.security_radius_reached(offset2[i])) break;  // and every later one
-      if (i > 0 && nearly_coincident_bisectors(offset[i - 1], offset2[i - 1], offset[i], offset2[i],
-                                               cell.largest_radius2())) {
+      if (i > 0 && nearly_coincident_bisectors(offset[i - 1], offset[i], offset2[i], cell.largest_radius2())) {
         return kIllConditioned;
       }
       if (cell.has_bisector(offset[i])) continue;

@@ -244,7 +244,7 @@ TV_HD CellIntegrals<T> compute_cell(Cell& cell, const io_t* points, int32_t seed
         out.neighbors = n;
         break;
       }
-      if (nearly_coincident_bisectors(before, dot(before, before), r, r2, cell.largest_radius2())) {
+      if (nearly_coincident_bisectors(before, r, r2, cell.largest_radius2())) {
         out.status = kIllConditioned;
         out.neighbors = n + 1;
         break;
