@@ -20,6 +20,13 @@ if [ -n "${BASELINE:-}" ]; then  # built in the background, beside this tree's b
   BASELINE=$(cd "$BASELINE" && pwd)  # absolute: the runs import it from /tmp
   (cd "$BASELINE" && python3 setup.py build_ext --inplace >"$OUT/baseline_build.log" 2>&1; echo $? >"$OUT/baseline_build.rc") &
 fi
+# ALSO_TIME: more source trees (space-separated) that compare and time time in turns
+# with this one, built the same way (their build logs: $OUT/also_<name>_build.log).
+also_time=()
+for tree in ${ALSO_TIME:-}; do
+  tree=$(cd "$tree" && pwd); also_time+=("$tree")
+  (cd "$tree" && python3 setup.py build_ext --inplace >"$OUT/also_$(basename "$tree")_build.log" 2>&1) &
+done
 # Verbose, each line stamped with the second it arrived: ninja prints a
 # compile's command when it finishes, so compile_times.txt lists when each
 # object was done.
@@ -95,8 +102,8 @@ for step in "${@:-cudatests}"; do
       (cd /tmp && PYTHONPATH="$REPO" python3 "$REPO/scripts/compare_builds.py" run /tmp/new.pt --device cuda \
         && PYTHONPATH="$BASELINE" python3 "$REPO/scripts/compare_builds.py" run /tmp/old.pt --device cuda \
         && python3 "$REPO/scripts/compare_builds.py" compare /tmp/old.pt /tmp/new.pt) 2>&1 | tee "$OUT/compare.log" || status=1
-      time_builds "$REPO" "$BASELINE" 2>&1 | tee "$OUT/compare_time.log" ;;
-    time) time_builds "$REPO" 2>&1 | tee "$OUT/time.log" ;;  # this build alone, as compare times it
+      time_builds "$REPO" "$BASELINE" "${also_time[@]}" 2>&1 | tee "$OUT/compare_time.log" ;;
+    time) wait; time_builds "$REPO" "${also_time[@]}" 2>&1 | tee "$OUT/time.log" ;;  # this build (and ALSO_TIME's), as compare times it
     fuzz)  # the fuzzing campaign on CUDA, thread and warp cells: FUZZ_CASES cases from FUZZ_START (FUZZ_SEED,
            # FUZZ_MAX_N) in FUZZ_WORKERS processes (over the GPUs there are), each starting none after FUZZ_SECONDS (0: no budget)
            # and stopped FUZZ_GRACE seconds later;
