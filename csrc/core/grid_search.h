@@ -105,10 +105,29 @@ template <> struct HeapKey<double> {
   TV_HD static HeapKey make(double dist2, int32_t index) { return {dist2, index}; }
   TV_HD double dist2() const { return d; }
   TV_HD int32_t index() const { return i; }
+#if defined(__CUDA_ARCH__)
   TV_HD bool operator<(const HeapKey& other) const {
     return d < other.d || (d == other.d && i < other.i);
   }
   TV_HD static HeapKey select(bool when, HeapKey a, HeapKey b) { return when ? a : b; }
+#else
+  // Host: bit operations, not the branches a compiler makes of || and of a
+  // ternary on a 16-byte pair (they mispredict in the heap's sift).
+  bool operator<(const HeapKey& other) const {
+    return bool(int(d < other.d) | (int(d == other.d) & int(i < other.i)));
+  }
+  static HeapKey select(bool when, HeapKey a, HeapKey b) {
+    const uint64_t mask = uint64_t(0) - uint64_t(when);
+    uint64_t da, db;
+    memcpy(&da, &a.d, sizeof da);
+    memcpy(&db, &b.d, sizeof db);
+    const uint64_t bits = (da & mask) | (db & ~mask);
+    HeapKey out;
+    memcpy(&out.d, &bits, sizeof bits);
+    out.i = int32_t((uint32_t(a.i) & uint32_t(mask)) | (uint32_t(b.i) & ~uint32_t(mask)));
+    return out;
+  }
+#endif
 };
 
 // Max-heap of candidate keys: the root is the worst of the k best so far.
@@ -191,8 +210,7 @@ struct NeighborHeap {
 
   // Write the keys in increasing order as (dist2, index), padded with
   // (inf, -1), element e at e * stride; `dist2_out` may be null. The heap is
-  // consumed. Host: an AVX2 rank count for float keys (key_ranks.h), else
-  // std::sort; device: heap sort in place (no extra memory).
+  // consumed. Host: an AVX2 rank count (key_ranks.h), else std::sort; device: heap sort in place (no extra memory).
   template <typename index_t>
   TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
     const auto write = [&](int32_t e, const HeapKey<T>& item) {
@@ -201,14 +219,22 @@ struct NeighborHeap {
     };
     bool ranked = false;
 #if defined(TORCHVOR_HAS_KEY_RANKS) && !defined(__CUDA_ARCH__)
-    if constexpr (std::is_same<T, float>::value) {
-      if (key.stride == 1 && size <= kMaxRankedKeys && cpu_has_avx2()) {
+    if (key.stride == 1 && size <= kMaxRankedKeys && cpu_has_avx2()) {
+      int32_t rank[kMaxRankedKeys];
+      if constexpr (std::is_same<T, float>::value) {
         // float keys are one uint64 with a clear top bit: distinct and signed-comparable
-        int32_t rank[kMaxRankedKeys];
         key_ranks(reinterpret_cast<const int64_t*>(key.data), size, rank);
-        for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
-        ranked = true;
+      } else {
+        // double keys: the distance's bits (non-negative: signed-comparable), then the index
+        int64_t distance[kMaxRankedKeys], index[kMaxRankedKeys];
+        for (int32_t i = 0; i < size; ++i) {
+          memcpy(&distance[i], &key.data[i].d, sizeof(int64_t));
+          index[i] = key.data[i].i;
+        }
+        pair_ranks(distance, index, size, rank);
       }
+      for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
+      ranked = true;
     }
 #endif
     if (!ranked) {

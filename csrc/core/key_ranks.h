@@ -1,5 +1,6 @@
 // Host-only: the rank of each of n distinct non-negative 64-bit keys (the
-// number of smaller keys), which is its position in sorted order.
+// number of smaller keys), which is its position in sorted order; and of
+// pairs of them (pair_ranks: float64 distances, then indices).
 //
 // The kNN's last step sorts its k best keys. For k up to ~100 a rank count
 // is quadratic but branch-free, and with AVX2 (four 64-bit compares per
@@ -44,6 +45,32 @@ __attribute__((target("avx2"))) inline void key_ranks(const int64_t* key, int32_
     _mm256_store_si256(reinterpret_cast<__m256i*>(lanes), count);
     int64_t smaller = lanes[0] + lanes[1] + lanes[2] + lanes[3];
     for (; j < n; ++j) smaller += key[j] < key[i];
+    rank[i] = static_cast<int32_t>(smaller);
+  }
+}
+
+// The same for distinct pairs (first[i], second[i]) in lexicographic order,
+// each element below 2^63.
+__attribute__((target("avx2"))) inline void pair_ranks(const int64_t* first, const int64_t* second, int32_t n,
+                                                        int32_t* rank) {
+  for (int32_t i = 0; i < n; ++i) {
+    const __m256i item_first = _mm256_set1_epi64x(first[i]);
+    const __m256i item_second = _mm256_set1_epi64x(second[i]);
+    __m256i count = _mm256_setzero_si256();
+    int32_t j = 0;
+    for (; j + 4 <= n; j += 4) {
+      const __m256i other_first = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(first + j));
+      const __m256i other_second = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(second + j));
+      const __m256i tie_smaller = _mm256_and_si256(_mm256_cmpeq_epi64(item_first, other_first),
+                                                   _mm256_cmpgt_epi64(item_second, other_second));
+      count = _mm256_sub_epi64(count, _mm256_or_si256(_mm256_cmpgt_epi64(item_first, other_first), tie_smaller));
+    }
+    alignas(32) int64_t lanes[4];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(lanes), count);
+    int64_t smaller = lanes[0] + lanes[1] + lanes[2] + lanes[3];
+    for (; j < n; ++j) {
+      smaller += first[j] < first[i] || (first[j] == first[i] && second[j] < second[i]);
+    }
     rank[i] = static_cast<int32_t>(smaller);
   }
 }
