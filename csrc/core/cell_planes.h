@@ -204,15 +204,18 @@ TV_HD bool nearly_coincident_bisectors(Vec3<T> a, Vec3<T> b, T b2, T radius2) {
     if (dot(apart, apart) > T(2e-5) * radius2 + T(1.1e-6) * b2) return false;
     const T a2 = dot(a, a);
     if (!(a2 > T(0)) || !(dot(a, b) > T(0))) return false;
+    // From b - a (exact for such a pair: Sterbenz), not b: a x b = a x (b - a)
+    // and |b|^2 - |a|^2 = (b - a) . (a + b), without the cancellation that
+    // would drown a sine or a gap near float's resolution.
     const T unit = rsqrt_of(a2);  // lengths in units of |a|: no underflow for tiny cells
-    const Vec3<T> c = cross(unit * a, unit * b);
+    const Vec3<T> c = cross(unit * a, unit * apart);
     const T c2 = dot(c, c);        // s^2 |b|^2 / |a|^2
     const T w2 = b2 * unit * unit;  // |b|^2 / |a|^2
     constexpr T kSine = T(1e-3);
     if (!(c2 > T(0) && c2 < kSine * kSine * w2)) return false;
     // The planes lie (|b| - |a|) / 2 <= d / 4 apart (d = w2 - 1), so they
     // cross within 2 R where d^2 / 16 <= 4 s^2 R^2, in units of |a|.
-    const T d = (b2 - a2) * unit * unit;
+    const T d = dot(apart, a + b) * unit * unit;
     return d * d * w2 <= T(64) * c2 * (radius2 * unit * unit);
   }
   return false;

@@ -1,0 +1,103 @@
+// core::nearly_coincident_bisectors (csrc/core/cell_planes.h) against the
+// geometry it stands for, in double: the bisectors of the seed (origin) and
+// two float32 neighbours a, b meet along a line; the test must flag the pair
+// where their sine is under 1e-3 and that line passes within twice the
+// cell's radius R (a needle can hang there), and may flag it only where the
+// sine is under 1e-3 and the line passes within 2.5 R; a few percent from
+// those limits rounding decides. Pairs are drawn near the limits, with sines
+// down to float's resolution, at scales from 1e-15 to 1e4. Exit status 0:
+// every pair agreed, and enough were required.
+// Built and run by tests/test_voronoi_tight_clusters.py:
+//   close_pairs SEED PAIRS
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <random>
+
+#include "core/cell_planes.h"
+
+namespace core = torchvor::core;
+
+struct Geometry {
+  double sine;      // of the angle between a and b
+  double distance;  // from the origin to the line where the bisectors meet (inf: parallel)
+};
+
+static Geometry geometry(const double a[3], const double b[3]) {
+  const double a2 = a[0] * a[0] + a[1] * a[1] + a[2] * a[2];
+  const double b2 = b[0] * b[0] + b[1] * b[1] + b[2] * b[2];
+  const double ab = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+  const double c[3] = {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
+  const double c2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+  Geometry g{std::sqrt(c2 / (a2 * b2)), INFINITY};
+  if (c2 == 0.0) return g;
+  // The line's point nearest the origin is y = alpha a + beta b with
+  // a . y = a2 / 2 and b . y = b2 / 2.
+  const double det = a2 * b2 - ab * ab;
+  const double alpha = (0.5 * a2 * b2 - 0.5 * b2 * ab) / det;
+  const double beta = (0.5 * b2 * a2 - 0.5 * a2 * ab) / det;
+  const double y2 = alpha * alpha * a2 + 2.0 * alpha * beta * ab + beta * beta * b2;
+  g.distance = std::sqrt(std::fabs(y2));
+  return g;
+}
+
+int main(int argc, char** argv) {
+  const unsigned seed = argc > 1 ? unsigned(std::atoi(argv[1])) : 0u;
+  const long pairs = argc > 2 ? std::atol(argv[2]) : 200000;
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> uniform(0.0, 1.0);
+  std::normal_distribution<double> normal(0.0, 1.0);
+  const auto log_uniform = [&](double lo, double hi) { return lo * std::pow(hi / lo, uniform(rng)); };
+  long missed = 0, spurious = 0, flagged = 0, required = 0;
+  for (long p = 0; p < pairs; ++p) {
+    // a: a random direction at a random scale; b: a turned by a small angle
+    // about a random axis and set so that the line lies near the radius R.
+    double u[3] = {normal(rng), normal(rng), normal(rng)};
+    const double un = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    for (double& x : u) x /= un;
+    double v[3] = {normal(rng), normal(rng), normal(rng)};
+    const double uv = v[0] * u[0] + v[1] * u[1] + v[2] * u[2];
+    for (int e = 0; e < 3; ++e) v[e] -= uv * u[e];
+    const double vn = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    for (double& x : v) x /= vn;
+    const double length = log_uniform(1e-15, 1e4);
+    const double radius = length * log_uniform(0.5, 1.0) * (uniform(rng) < 0.8 ? 1.0 : log_uniform(1.0, 50.0));
+    const double angle = log_uniform(1e-7, 4e-3);
+    // Bisectors at distances h and h + delta meet about delta / sin from the
+    // foot: delta = sin * (a multiple of R around 1).
+    const double delta = std::sin(angle) * radius * log_uniform(0.05, 6.0) * (uniform(rng) < 0.5 ? 1.0 : 0.0);
+    const double b_length = length + 2.0 * delta;
+    const float af[3] = {float(length * u[0]), float(length * u[1]), float(length * u[2])};
+    const float bf[3] = {float(b_length * (std::cos(angle) * u[0] + std::sin(angle) * v[0])),
+                         float(b_length * (std::cos(angle) * u[1] + std::sin(angle) * v[1])),
+                         float(b_length * (std::cos(angle) * u[2] + std::sin(angle) * v[2]))};
+    double a[3] = {af[0], af[1], af[2]}, b[3] = {bf[0], bf[1], bf[2]};
+    const double a2 = a[0] * a[0] + a[1] * a[1] + a[2] * a[2];
+    const double b2 = b[0] * b[0] + b[1] * b[1] + b[2] * b[2];
+    if (!(a2 <= b2)) continue;  // the list's order: a no farther than b
+    const Geometry g = geometry(a, b);
+    const float r2 = float(radius * radius);
+    const float bf2 = bf[0] * bf[0] + bf[1] * bf[1] + bf[2] * bf[2];
+    const bool flag = core::nearly_coincident_bisectors(core::Vec3<float>{af[0], af[1], af[2]},
+                                                        core::Vec3<float>{bf[0], bf[1], bf[2]}, bf2, r2);
+    const bool must = g.sine < 0.97e-3 && g.distance < 1.9 * radius;
+    const bool may = g.sine < 1.03e-3 && g.distance < 2.5 * radius;
+    flagged += flag;
+    required += must;
+    if (must && !flag) {
+      if (++missed <= 10) {
+        std::printf("missed: |a| %.3g sine %.3g line at %.3g R (R %.3g)\n", std::sqrt(a2), g.sine,
+                    g.distance / radius, radius);
+      }
+    }
+    if (flag && !may) {
+      if (++spurious <= 10) {
+        std::printf("spurious: |a| %.3g sine %.3g line at %.3g R (R %.3g)\n", std::sqrt(a2), g.sine,
+                    g.distance / radius, radius);
+      }
+    }
+  }
+  std::printf("%ld pairs: %ld flagged, %ld required, %ld missed, %ld spurious\n", pairs, flagged, required, missed,
+              spurious);
+  return missed == 0 && spurious == 0 && required > pairs / 20 ? 0 : 1;
+}
