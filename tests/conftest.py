@@ -11,8 +11,11 @@
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
 import sys
 import tempfile
+from pathlib import Path
 
 import pytest
 import torch
@@ -73,6 +76,27 @@ def vertex_balls(request, monkeypatch):
     if request.param == "every retry":
         monkeypatch.setenv("TORCHVOR_VERTEX_BALLS_K", "1")
     return request.param
+
+
+@pytest.fixture(scope="session")
+def cpp_program(tmp_path_factory):
+    """Builds tests/NAME.cpp against csrc/ (the core headers) and returns the
+    executable's path: cpp_program("lane_emulation", "-pthread"). Skips
+    without a C++ compiler."""
+    compiler = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+    if compiler is None:
+        pytest.skip("no C++ compiler")
+    root = Path(__file__).resolve().parent.parent
+
+    def build(name: str, *flags: str) -> Path:
+        binary = tmp_path_factory.mktemp(name) / name
+        done = subprocess.run([compiler, "-std=c++17", "-O1", *flags, f"-I{root / 'csrc'}",
+                               str(root / "tests" / f"{name}.cpp"), "-o", str(binary)],
+                              capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-4000:]
+        return binary
+
+    return build
 
 
 @pytest.hookimpl(hookwrapper=True)

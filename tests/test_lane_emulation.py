@@ -5,27 +5,14 @@ GPU and on a single lane on the CPU, so without a GPU its multi-lane logic
 (ballots, ranks, rounds of slots) would go untested. The program emulates the
 lanes with host threads and checks each cell against the thread cell.
 """
-import os
-import shutil
 import subprocess
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
-
 
 @pytest.fixture(scope="module")
-def lane_emulation(tmp_path_factory):
-    compiler = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
-    if compiler is None:
-        pytest.skip("no C++ compiler")
-    binary = tmp_path_factory.mktemp("lane_emulation") / "lane_emulation"
-    build = subprocess.run([compiler, "-std=c++17", "-O1", "-pthread", f"-I{ROOT / 'csrc'}",
-                            str(ROOT / "tests" / "lane_emulation.cpp"), "-o", str(binary)],
-                           capture_output=True, text=True, timeout=600)
-    assert build.returncode == 0, build.stderr[-4000:]
-    return binary
+def lane_emulation(cpp_program):
+    return cpp_program("lane_emulation", "-pthread")
 
 
 def test_cooperative_cell_on_emulated_lanes(lane_emulation, seed):

@@ -5,10 +5,7 @@ oracles, and the regressions they found, pinned to exact rational arithmetic
 """
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -199,16 +196,8 @@ def test_float32_cell_beside_close_pairs_keeps_its_radius(device, cells_impl, fu
 
 
 @pytest.fixture(scope="module")
-def close_pairs_program(tmp_path_factory):
-    compiler = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
-    if compiler is None:
-        pytest.skip("no C++ compiler")
-    binary = tmp_path_factory.mktemp("close_pairs") / "close_pairs"
-    root = Path(__file__).resolve().parent.parent
-    build = subprocess.run([compiler, "-std=c++17", "-O1", f"-I{root / 'csrc'}", str(root / "tests" / "close_pairs.cpp"),
-                            "-o", str(binary)], capture_output=True, text=True, timeout=600)
-    assert build.returncode == 0, build.stderr[-4000:]
-    return binary
+def close_pairs_program(cpp_program):
+    return cpp_program("close_pairs")
 
 
 @pytest.mark.parametrize("pair_seed", [1, 2])
