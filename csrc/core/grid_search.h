@@ -210,7 +210,8 @@ struct NeighborHeap {
 
   // Write the keys in increasing order as (dist2, index), padded with
   // (inf, -1), element e at e * stride; `dist2_out` may be null. The heap is
-  // consumed. Host: an AVX2 rank count (key_ranks.h), else std::sort; device: heap sort in place (no extra memory).
+  // consumed. Host: an AVX2 rank count (key_ranks.h), else std::sort;
+  // device: heap sort in place (no extra memory).
   template <typename index_t>
   TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
     const auto write = [&](int32_t e, const HeapKey<T>& item) {
