@@ -171,7 +171,6 @@ def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
     assert cells.second_moment[5].item() == pytest.approx(reference.second_moment[5].item(), rel=1e-5, abs=0)
 
 
-
 @pytest.mark.parametrize("fuzz_seed, index, max_n, cell", [(34, 7, 200000, 17488), (34, 7, 200000, 7186),
                                                           (35, 7, 20000, 11611)])
 def test_float32_cell_beside_close_pairs_keeps_its_radius(device, cells_impl, fuzz_seed, index, max_n, cell):
@@ -208,6 +207,6 @@ def test_nearly_coincident_bisectors_against_their_geometry(close_pairs_program,
     (tests/close_pairs.cpp): every pair whose bisectors meet at a sine under
     1e-3 along a line within twice the cell's radius is flagged, and none
     whose line lies beyond 2.5 radii or whose sine is over 1e-3."""
-    run = subprocess.run([str(close_pairs_program), str(pair_seed), "200000"], capture_output=True, text=True,
-                         timeout=600)
-    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+    result = subprocess.run([str(close_pairs_program), str(pair_seed), "200000"], capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
