@@ -118,7 +118,7 @@ TV_HD bool may_cut(const Cell& cell, Vec3<T> r, T r2) {
 // row's points, a point a lane, each tested against the cell as the batch
 // found it (may_cut; a point that cannot cut the cell cannot cut it once
 // smaller). The points that may cut are then clipped together, in the
-// grid's order, each tested again as it comes: the same clips, in the same
+// sweep's order, each tested again as it comes: the same clips, in the same
 // order, as one lane makes.
 //
 // The rows run along the axis that makes them cheapest (each costs a pass
@@ -220,40 +220,59 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
       const int32_t first = grid_coordinate(reach_lo, row.origin, h, row.dim);
       const int32_t last = grid_coordinate(reach_hi, row.origin, h, row.dim);
       const int32_t row_start = first_cell + c_slab * slab.stride + c_across * across.stride;
-      // Along x the row's cells are one range of the sorted points; along y
-      // or z, a range a cell.
-      const int32_t ranges = row_axis == 0 ? 1 : last - first + 1;
-      for (int32_t range = 0; range < ranges; ++range) {
-        const int32_t cell_from = row_start + (first + range) * row.stride;
-        const int32_t cell_to = row_axis == 0 ? row_start + last : cell_from;
-        const int32_t end = grid.cell_start[cell_to + 1];
-        for (int32_t batch_start = grid.cell_start[cell_from]; batch_start < end; batch_start += kLanes) {
-          const int32_t s = batch_start + lane;  // this lane's point
-          Vec3<T> r = {T(0), T(0), T(0)};
-          T r2 = T(0);
-          bool copy_kept_elsewhere = false, candidate = false;
-          if (s < end) {
-            const int32_t j = grid.original_index(s);
-            const Vec3<T> p = {T(grid.sorted_points[3 * s]), T(grid.sorted_points[3 * s + 1]),
-                               T(grid.sorted_points[3 * s + 2])};
-            r = p - seed;
-            r2 = squared_norm(r);
-            // An exact copy of the seed: the lowest index keeps the cell.
-            copy_kept_elsewhere = r2 == T(0) && j < seed_index;
-            candidate = j != seed_index && !(r2 == T(0)) && !(r2 < skip_below) && !cell.security_radius_reached(r2) &&
-                        may_cut(cell, r, r2) && !cell.has_bisector(r);
+      // Outward from the seed's cell: cells nearest..last, then nearest - 1
+      // down to first. Far points first would each cut the cell a little
+      // less than the last (a column from a wall, swept from the far wall
+      // back to its seed, is cut by nearly every point of the row).
+      const int32_t nearest = min_of(max_of(row.seed_cell, first), last);
+      for (int side = 0; side < 2; ++side) {
+        const int32_t count = side == 0 ? last - nearest + 1 : nearest - first;
+        // Along x the side's cells are one range of the sorted points
+        // (walked backwards on the near side); along y or z, a range a cell.
+        const int32_t ranges = row_axis == 0 ? min_of(count, 1) : count;
+        for (int32_t range = 0; range < ranges; ++range) {
+          int32_t begin, end;
+          if (row_axis == 0) {
+            const int32_t low_cell = side == 0 ? nearest : first;
+            const int32_t high_cell = side == 0 ? last : nearest - 1;
+            begin = grid.cell_start[row_start + low_cell];
+            end = grid.cell_start[row_start + high_cell + 1];
+          } else {
+            const int32_t c = side == 0 ? nearest + range : nearest - 1 - range;
+            begin = grid.cell_start[row_start + c * row.stride];
+            end = grid.cell_start[row_start + c * row.stride + 1];
           }
-          if (lanes.any(copy_kept_elsewhere)) return kDuplicate;
-          uint32_t pending = lanes.ballot(candidate);
-          if (pending == 0u) continue;
-          lanes.sync();  // the lanes' reads of the cell before the clips write it
-          for (; pending != 0u; pending &= pending - 1u) {
-            const int from = lowest_bit(pending);
-            const Vec3<T> offer = {lanes.broadcast(r.x, from), lanes.broadcast(r.y, from), lanes.broadcast(r.z, from)};
-            // As one lane would test it now: earlier clips of the batch may have settled it.
-            if (cell.security_radius_reached(squared_norm(offer)) || cell.has_bisector(offer)) continue;
-            if (!cell.clip_by_bisector(offer)) return cell.status;
-            clipped = clipped || cell.has_bisector(offer);  // a plane is added where it cuts
+          const bool backwards = row_axis == 0 && side == 1;
+          for (int32_t batch_start = 0; batch_start < end - begin; batch_start += kLanes) {
+            const int32_t step = batch_start + lane;  // this lane's point
+            const int32_t s = backwards ? end - 1 - step : begin + step;
+            Vec3<T> r = {T(0), T(0), T(0)};
+            T r2 = T(0);
+            bool copy_kept_elsewhere = false, candidate = false;
+            if (step < end - begin) {
+              const int32_t j = grid.original_index(s);
+              const Vec3<T> p = {T(grid.sorted_points[3 * s]), T(grid.sorted_points[3 * s + 1]),
+                                 T(grid.sorted_points[3 * s + 2])};
+              r = p - seed;
+              r2 = squared_norm(r);
+              // An exact copy of the seed: the lowest index keeps the cell.
+              copy_kept_elsewhere = r2 == T(0) && j < seed_index;
+              candidate = j != seed_index && !(r2 == T(0)) && !(r2 < skip_below) &&
+                          !cell.security_radius_reached(r2) && may_cut(cell, r, r2) && !cell.has_bisector(r);
+            }
+            if (lanes.any(copy_kept_elsewhere)) return kDuplicate;
+            uint32_t pending = lanes.ballot(candidate);
+            if (pending == 0u) continue;
+            lanes.sync();  // the lanes' reads of the cell before the clips write it
+            for (; pending != 0u; pending &= pending - 1u) {
+              const int from = lowest_bit(pending);
+              const Vec3<T> offer = {lanes.broadcast(r.x, from), lanes.broadcast(r.y, from),
+                                     lanes.broadcast(r.z, from)};
+              // As one lane would test it now: earlier clips of the batch may have settled it.
+              if (cell.security_radius_reached(squared_norm(offer)) || cell.has_bisector(offer)) continue;
+              if (!cell.clip_by_bisector(offer)) return cell.status;
+              clipped = clipped || cell.has_bisector(offer);  // a plane is added where it cuts
+            }
           }
         }
       }
