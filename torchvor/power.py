@@ -197,8 +197,12 @@ def _lists(points, batch, chunk_rows, k, cached: Optional[torch.Tensor] = None):
     the first k columns of `cached` (every row's list, longer) where it holds them."""
     if cached is not None and cached.shape[1] >= k:
         return cached[chunk_rows, :k]
-    query_batch = None if batch is None else batch[chunk_rows]
-    return _knn(points, k, points[chunk_rows], batch=batch, query_batch=query_batch, exclude_self=False).idx
+    if batch is None:
+        return _knn(points, k, points[chunk_rows], exclude_self=False).idx
+    # knn takes queries sorted by cloud; retried rows come in any order
+    query_batch, by_cloud = torch.sort(batch[chunk_rows], stable=True)
+    found = _knn(points, k, points[chunk_rows[by_cloud]], batch=batch, query_batch=query_batch, exclude_self=False).idx
+    return torch.empty_like(found).index_copy_(0, by_cloud, found)
 
 
 def every_list(points, batch, k: int, memory_budget: int) -> Optional[torch.Tensor]:
