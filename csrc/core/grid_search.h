@@ -30,6 +30,8 @@ struct GridView {
   const T* cell_size;            // (B,) edge length of the cubic grid cells
   const int32_t* dims;           // (B, 3) number of cells along x, y, z
   const int32_t* cell_offset;    // (B,) id of each batch element's first cell
+  const T* cell_bounds = nullptr;  // (num_cells, 6): low x, y, z and high x, y, z of each cell's
+                                   // points (+inf, -inf where empty), or nullptr (the vertex-ball sweep's)
 
   // Original index of sorted point s. Without the index array, one load
   // fewer a candidate in the search loops.

@@ -217,9 +217,34 @@ TV_HD int8_t sweep_vertex_balls(Cell& cell, const VertexBallGrid<io_t>& where, i
       if (!lanes.any(meets)) continue;
       reach_lo = lanes.min(meets ? reach_lo : infinity);
       reach_hi = lanes.max(meets ? reach_hi : -infinity);
-      const int32_t first = grid_coordinate(reach_lo, row.origin, h, row.dim);
-      const int32_t last = grid_coordinate(reach_hi, row.origin, h, row.dim);
+      int32_t first = grid_coordinate(reach_lo, row.origin, h, row.dim);
+      int32_t last = grid_coordinate(reach_hi, row.origin, h, row.dim);
       const int32_t row_start = first_cell + c_slab * slab.stride + c_across * across.stride;
+      // The row's ends cut to the cells whose points' bounds meet a ball: a
+      // dense layer fills a thin part of its cells, and the balls of a tall
+      // cell above it meet those cells far wider than they meet the layer.
+      if (grid.cell_bounds != nullptr) {
+        const auto points_meet_a_ball = [&](int32_t c) {
+          const int32_t id = row_start + c * row.stride;
+          if (grid.cell_start[id + 1] == grid.cell_start[id]) return false;  // no points (the same on every lane)
+          const io_t* bounds = grid.cell_bounds + 6 * int64_t(id);
+          const Vec3<S> low = Vec3<S>{S(bounds[0]), S(bounds[1]), S(bounds[2])} - seed_s;
+          const Vec3<S> high = Vec3<S>{S(bounds[3]), S(bounds[4]), S(bounds[5])} - seed_s;
+          bool meets = false;
+          for (int t = lane; t < cell.vertex_count() && !meets; t += kLanes) {
+            const Vec3<S> v = to_s(cell.vertex(t));
+            const Vec3<S> gap = {max_of(max_of(low.x - v.x, v.x - high.x), S(0)),
+                                 max_of(max_of(low.y - v.y, v.y - high.y), S(0)),
+                                 max_of(max_of(low.z - v.z, v.z - high.z), S(0))};
+            const S radius = sqrt_of(squared_norm(v)) + margin;
+            meets = squared_norm(gap) < radius * radius;  // false where the cell is empty (infinite gap)
+          }
+          return lanes.any(meets);
+        };
+        while (first <= last && !points_meet_a_ball(first)) ++first;
+        while (last > first && !points_meet_a_ball(last)) --last;
+        if (first > last) continue;
+      }
       // Outward from the seed's cell: cells nearest..last, then nearest - 1
       // down to first. Far points first would each cut the cell a little
       // less than the last (a column from a wall, swept from the far wall

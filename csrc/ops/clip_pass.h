@@ -493,6 +493,7 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
   const int64_t largest_chunk = std::max<int64_t>(1024, memory_budget / bytes_per_cell);
   const int64_t chunks = std::max<int64_t>(1, (cells.size(0) + largest_chunk - 1) / largest_chunk);
   const int64_t chunk = (cells.size(0) + chunks - 1) / chunks;
+  const Grid swept = pass.vertex_balls ? with_cell_bounds<Exec>(grid) : Grid{};  // the vertex-ball sweep's
   for (int64_t begin = 0; begin < cells.size(0); begin += chunk) {
     const at::Tensor part = cells.slice(0, begin, std::min(cells.size(0), begin + chunk));
     const int64_t m = part.size(0);
@@ -503,7 +504,7 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                         /*row_by_query=*/false, Exec::kColumnMajorNeighbors, options.knn, no_distances, neighbors);
-    const Grid* vertex_balls = pass.vertex_balls ? &grid : nullptr;
+    const Grid* vertex_balls = pass.vertex_balls ? &swept : nullptr;
     // Float32 points are clipped in float32 or float64; float64 points only
     // in float64 (`if constexpr`: no float32 cells of float64 points are
     // compiled, which nothing would run).

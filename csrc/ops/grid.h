@@ -26,12 +26,13 @@ struct Grid {
   at::Tensor cell_size;      // (B,) points' dtype
   at::Tensor dims;           // (B, 3) int32
   at::Tensor cell_offset;    // (B,) int32
+  at::Tensor cell_bounds;    // (num_cells, 6) points' dtype, or undefined: with_cell_bounds()
 
   // A copy on the CPU (the double-double pass runs there).
   Grid to_cpu() const {
     const auto cpu = [](const at::Tensor& t) { return t.defined() ? t.to(at::kCPU).contiguous() : t; };
-    return {cpu(sorted_points), cpu(sorted_index), cpu(cell_start), cpu(origin),
-            cpu(cell_size),     cpu(dims),         cpu(cell_offset)};
+    return {cpu(sorted_points), cpu(sorted_index), cpu(cell_start),  cpu(origin),
+            cpu(cell_size),     cpu(dims),         cpu(cell_offset), cpu(cell_bounds)};
   }
 
   template <typename T>
@@ -40,9 +41,50 @@ struct Grid {
             sorted_index.defined() ? sorted_index.data_ptr<int32_t>() : nullptr,
             cell_start.data_ptr<int32_t>(), origin.data_ptr<T>(),
             cell_size.data_ptr<T>(),        dims.data_ptr<int32_t>(),
-            cell_offset.data_ptr<int32_t>()};
+            cell_offset.data_ptr<int32_t>(),
+            cell_bounds.defined() ? cell_bounds.data_ptr<T>() : nullptr};
   }
 };
+
+// The bounds of the points of grid cell c (GridView::cell_bounds).
+template <typename T>
+struct CellBoundsFunctor {
+  const T* sorted_points;     // (N, 3)
+  const int32_t* cell_start;  // (num_cells + 1,)
+  T* bounds;                  // (num_cells, 6)
+
+  TV_HD void operator()(int64_t c) const {
+    const T infinity = T(1) / T(0);
+    T low[3] = {infinity, infinity, infinity}, high[3] = {-infinity, -infinity, -infinity};
+    for (int32_t s = cell_start[c]; s < cell_start[c + 1]; ++s) {
+      for (int a = 0; a < 3; ++a) {
+        const T u = sorted_points[3 * s + a];
+        low[a] = u < low[a] ? u : low[a];
+        high[a] = u > high[a] ? u : high[a];
+      }
+    }
+    for (int a = 0; a < 3; ++a) {
+      bounds[6 * c + a] = low[a];
+      bounds[6 * c + 3 + a] = high[a];
+    }
+  }
+};
+
+// `grid` with the bounds of each cell's points, which the vertex-ball sweep
+// tests against its balls: a dense layer or slab fills a thin part of its
+// grid cells, and a ball that meets such a cell can miss all its points.
+template <typename Exec>
+Grid with_cell_bounds(const Grid& grid) {
+  Grid out = grid;
+  const int64_t cells = grid.cell_start.size(0) - 1;
+  out.cell_bounds = at::empty({cells, 6}, grid.sorted_points.options());
+  AT_DISPATCH_FLOATING_TYPES(grid.sorted_points.scalar_type(), "torchvor::cell_bounds", [&] {
+    Exec::for_each(cells, CellBoundsFunctor<scalar_t>{grid.sorted_points.data_ptr<scalar_t>(),
+                                                      grid.cell_start.data_ptr<int32_t>(),
+                                                      out.cell_bounds.data_ptr<scalar_t>()});
+  });
+  return out;
+}
 
 // Cubic cell size and cell counts for a box of the given extent holding
 // `count` points at about `points_per_cell` points per cell. Flat or
