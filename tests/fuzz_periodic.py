@@ -23,10 +23,19 @@ AXES = ((True, True, True), (True, False, True), (False, True, False))
 
 
 def wrapped(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, axes) -> np.ndarray:
-    """The points moved into [lo, hi) along the periodic axes (numpy, float64)."""
-    period = hi - lo
-    moved = np.where(axes, lo + np.mod(points - lo, period), points)
-    return np.where(np.asarray(axes) & (moved >= hi), lo, moved)
+    """The points as torchvor places them in a periodic box (numpy, float64):
+    a point inside [lo, hi) unchanged (bit for bit: a cell can hang on the
+    last bits of its neighbours), one on hi at lo, any other moved by whole
+    periods into [lo, hi) (api.md's rule for points outside the box)."""
+    axes = np.asarray(axes)
+    period = np.where(axes, hi - lo, 0.0)
+    turns = np.where(axes, np.floor((points - lo) / np.where(axes, period, 1.0)), 0.0)
+    moved = points - turns * period
+    turns = turns + (axes & (moved >= lo + period)) - (axes & (moved < lo))
+    moved = points - turns * period
+    moved = np.where(axes & ((points == hi) | (moved >= lo + period)), lo, moved)
+    inside = (points >= lo) & (points < hi)
+    return np.where(~axes | inside, points, moved)
 
 
 def images_round(lo: np.ndarray, hi: np.ndarray, axes) -> bool:

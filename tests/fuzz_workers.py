@@ -70,7 +70,8 @@ def run_workers(args, argv: List[str], merge_reports, summary) -> int:
     reports, stopped = [], []
     for w, (child, log) in enumerate(children):
         try:
-            child.wait(timeout=None if deadline is None else max(1.0, deadline - time.monotonic()))
+            # past the deadline, each worker still in a case is stopped at once (not a second each)
+            child.wait(timeout=None if deadline is None else max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait()

@@ -70,6 +70,8 @@ REGRESSIONS = [
     (19, 1855, 1000000, "float64", "points 7-100 ulps apart, a box start 1e15 times wider: faces 7e-4 off (graph)"),
     (23, 36, 20000, "float32", "jittered lattice: a vertex put beyond the cell it cut, radius 22% over (compact triangles)"),
     (33, 28, 1000000, "both", "4 clouds, periodic power cells: retried rows out of cloud order (knn's query_batch)"),
+    (44, 2359, 1000000, "both", "periodic thin slab, lattice jittered 1e-9: the oracle moved points inside the box (oracle)"),
+    (44, 1078, 1000000, "both", "a pair 2e-12 apart in a 33-point gradient: faces not closed on CUDA (graph)"),
 ]
 
 
