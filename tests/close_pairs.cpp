@@ -7,14 +7,18 @@
 // those limits rounding decides. Pairs are drawn near the limits, with sines
 // down to float's resolution, at scales from 1e-15 to 1e4. Exit status 0:
 // every pair agreed, and enough were required.
+// With "double": core::nearly_parallel_bisectors (csrc/core/cell_faces.h,
+// voronoi_graph's float64 faces) the same way, on double neighbours, its
+// sine limit 1e-7, against the geometry in long double.
 // Built and run by tests/test_voronoi_tight_clusters.py:
-//   close_pairs SEED PAIRS
+//   close_pairs SEED PAIRS [float|double]
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <random>
 
-#include "core/cell_planes.h"
+#include "core/cell_faces.h"
 
 namespace core = torchvor::core;
 
@@ -41,9 +45,76 @@ static Geometry geometry(const double a[3], const double b[3]) {
   return g;
 }
 
+// The same for two double neighbours, in long double: the cross product
+// and the line's foot from b - a (no cancellation at sines near 1e-9).
+static Geometry geometry_wide(const double a_in[3], const double b_in[3]) {
+  using W = long double;
+  const W a[3] = {a_in[0], a_in[1], a_in[2]};
+  const W d[3] = {W(b_in[0]) - a[0], W(b_in[1]) - a[1], W(b_in[2]) - a[2]};
+  const W b[3] = {b_in[0], b_in[1], b_in[2]};
+  const W a2 = a[0] * a[0] + a[1] * a[1] + a[2] * a[2];
+  const W b2 = b[0] * b[0] + b[1] * b[1] + b[2] * b[2];
+  const W c[3] = {a[1] * d[2] - a[2] * d[1], a[2] * d[0] - a[0] * d[2], a[0] * d[1] - a[1] * d[0]};
+  const W c2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+  Geometry g{double(std::sqrt(c2 / (a2 * b2))), INFINITY};
+  if (c2 == 0) return g;
+  // y = alpha a + beta b, a . y = a2 / 2, b . y = b2 / 2: with det = c2,
+  // alpha = -b2 (a . d) / (2 c2), beta = a2 (b . d) / (2 c2).
+  const W ad = a[0] * d[0] + a[1] * d[1] + a[2] * d[2], bd = b[0] * d[0] + b[1] * d[1] + b[2] * d[2];
+  const W alpha = -b2 * ad / (2 * c2), beta = a2 * bd / (2 * c2);
+  W y2 = 0;
+  for (int e = 0; e < 3; ++e) y2 += (alpha * a[e] + beta * b[e]) * (alpha * a[e] + beta * b[e]);
+  g.distance = double(std::sqrt(y2));
+  return g;
+}
+
+static int run_double(unsigned seed, long pairs) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> uniform(0.0, 1.0);
+  std::normal_distribution<double> normal(0.0, 1.0);
+  const auto log_uniform = [&](double lo, double hi) { return lo * std::pow(hi / lo, uniform(rng)); };
+  constexpr double kSine = torchvor::core::FaceSineLimit<double, double>::value;
+  long missed = 0, spurious = 0, flagged = 0, required = 0;
+  for (long p = 0; p < pairs; ++p) {
+    double u[3] = {normal(rng), normal(rng), normal(rng)};
+    const double un = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    for (double& x : u) x /= un;
+    double v[3] = {normal(rng), normal(rng), normal(rng)};
+    const double uv = v[0] * u[0] + v[1] * u[1] + v[2] * u[2];
+    for (int e = 0; e < 3; ++e) v[e] -= uv * u[e];
+    const double vn = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    for (double& x : v) x /= vn;
+    const double length = log_uniform(1e-100, 1e100);
+    const double radius = length * log_uniform(0.5, 1.0) * (uniform(rng) < 0.8 ? 1.0 : log_uniform(1.0, 50.0));
+    const double angle = log_uniform(1e-11, 4e-7);
+    const double delta = std::sin(angle) * radius * log_uniform(0.05, 6.0) * (uniform(rng) < 0.5 ? 1.0 : 0.0);
+    const double b_length = length + 2.0 * delta;
+    double a[3], b[3];
+    for (int e = 0; e < 3; ++e) {
+      a[e] = length * u[e];
+      b[e] = b_length * (std::cos(angle) * u[e] + std::sin(angle) * v[e]);
+    }
+    const Geometry g = geometry_wide(a, b);
+    const bool flag = core::nearly_parallel_bisectors(core::Vec3<double>{a[0], a[1], a[2]},
+                                                      core::Vec3<double>{b[0], b[1], b[2]}, radius * radius, kSine);
+    const bool must = g.sine < 0.97 * kSine && g.distance < 1.9 * radius;
+    const bool may = g.sine < 1.03 * kSine && g.distance < 2.5 * radius;
+    flagged += flag;
+    required += must;
+    if ((must && !flag && ++missed <= 10) || (flag && !may && ++spurious <= 10)) {
+      std::printf("%s: |a| %.3g sine %.3g line at %.3g R (R %.3g)\n", flag ? "spurious" : "missed", length, g.sine,
+                  g.distance / radius, radius);
+    }
+  }
+  std::printf("%ld double pairs: %ld flagged, %ld required, %ld missed, %ld spurious\n", pairs, flagged, required,
+              missed, spurious);
+  return missed == 0 && spurious == 0 && required > pairs / 20 ? 0 : 1;
+}
+
 int main(int argc, char** argv) {
   const unsigned seed = argc > 1 ? unsigned(std::atoi(argv[1])) : 0u;
   const long pairs = argc > 2 ? std::atol(argv[2]) : 200000;
+  if (argc > 3 && std::strcmp(argv[3], "double") == 0) return run_double(seed, pairs);
   std::mt19937_64 rng(seed);
   std::uniform_real_distribution<double> uniform(0.0, 1.0);
   std::normal_distribution<double> normal(0.0, 1.0);

@@ -101,11 +101,37 @@ TV_HD bool faces_resolved(const Cell& cell) {
 // which a clip in T keeps within its tolerance band (core::ClipTolerance):
 // the plane is dropped and q takes both faces. The volume is right; the
 // faces are not. A cell whose face neighbour q has such a j that is no face
-// but comes within FaceBandMargin bands of a vertex goes to wider arithmetic
+// but comes within FaceBandMargin bands of a vertex, or whose bisector
+// meets q's nearly parallel within the cell's reach (face or not:
+// nearly_parallel_bisectors with FaceSineLimit), goes to wider arithmetic
 // in voronoi_graph's passes. 0: no check (double-double).
 template <typename io_t, typename T> struct FaceSeparationLimit { static constexpr double value = 0.0; };
 template <> struct FaceSeparationLimit<double, double> { static constexpr double value = 1e-3; };
 constexpr double FaceBandMargin = 16.0;
+
+// Whether the bisectors of neighbours a and b (relative to the seed) meet at
+// a sine under `sine` along a line within twice the cell's radius
+// (radius2 = R^2) of the seed. Where such a line crosses the cell, the
+// faces of a and b split there, and a vertex on it is off by about
+// eps |v| / sine: rounding can also make the two faces meet at a sliver of
+// a third plane, so no vertex names both (faces_resolved sees no small
+// sine). The crossing within 2 R needs (|b| - |a|) / 2 <= 2 R s, i.e.
+// (|b|^2 - |a|^2)^2 |a|^2 <= 64 s^2 R^2 |a|^2 |b|^2 (|a| + |b| <= 2 |b|);
+// lengths in units of |a| (no underflow for tiny cells).
+template <typename T>
+TV_HD bool nearly_parallel_bisectors(Vec3<T> a, Vec3<T> b, T radius2, T sine) {
+  const T a2 = dot(a, a);
+  if (!(a2 > T(0))) return false;
+  const T unit = rsqrt_of(a2);
+  const Vec3<T> ua = unit * a, apart = unit * (b - a);  // b - a: no cancellation in the cross product
+  const Vec3<T> c = cross(ua, apart);
+  const T c2 = dot(c, c);  // s^2 |b|^2 / |a|^2
+  const Vec3<T> ub = ua + apart;
+  const T b2 = dot(ub, ub);
+  if (!(c2 > T(0) && c2 < sine * sine * b2)) return false;  // exactly parallel planes never cross
+  const T gap = dot(apart, ua + ub);                         // (|b|^2 - |a|^2) / |a|^2
+  return gap * gap <= T(64) * c2 * (radius2 * unit * unit);
+}
 
 // A signed triangle (the apex at the origin, p and q) of weight s (twice
 // its area, times |normal|, signed): s (p p^T + q q^T + (p + q)(p + q)^T)

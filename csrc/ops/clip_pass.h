@@ -131,10 +131,13 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     if (lanes.index() == 0) write(t, out, num_faces);
   }
 
-  // Whether a listed neighbour j that is no face of computed cell t lies
-  // within core::FaceSeparationLimit of a face's neighbour q (relative to
-  // q's distance) and its bisector within core::FaceBandMargin tolerance
-  // bands of a vertex: its face may have been dropped within the band.
+  // Whether a listed neighbour j lies within core::FaceSeparationLimit of a
+  // face's neighbour q (relative to q's distance) and either its bisector
+  // meets q's nearly parallel within the cell's reach (the faces' split is
+  // not resolved, whatever faces the rounding left:
+  // core::nearly_parallel_bisectors), or j is no face and its bisector comes
+  // within core::FaceBandMargin tolerance bands of a vertex (its face may
+  // have been dropped within the band).
   // Such a pair has |r_j|^2 within 2.5 x the limit of |r_q|^2: the faces,
   // sorted by |r_q|^2, are swept beside the list (sorted by distance).
   template <typename Cell>
@@ -169,6 +172,7 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
       const int32_t* row = neighbors + (neighbors_column_major ? t : t * int64_t(k));
       const int64_t stride = neighbors_column_major ? int64_t(chunk) : int64_t(1);
       constexpr T window = T(2.5 * limit);
+      constexpr T sine_limit = T(core::FaceSineLimit<io_t, T>::value);
       int low = 0;  // the first face with |r_q|^2 >= |r_j|^2 (1 - window)
       for (int32_t n = 0; n < k && low < faces; ++n) {
         const int32_t j = row[n * stride];
@@ -183,7 +187,11 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
           const core::Vec3<T> d = {rj.x + normal.x, rj.y + normal.y, rj.z + normal.z};  // r_j - r_q
           const T d2 = core::dot(d, d);
           face = face || d2 == T(0);
-          near = near || (d2 > T(0) && d2 <= T(limit * limit) * face_r2[m]);
+          if (d2 > T(0) && d2 <= T(limit * limit) * face_r2[m]) {
+            near = true;
+            const core::Vec3<T> rq = {-normal.x, -normal.y, -normal.z};
+            if (core::nearly_parallel_bisectors(rq, rj, cell.largest_radius2(), sine_limit)) return true;
+          }
         }
         if (!near || face) continue;
         const core::Plane<T> pj = core::bisector_plane(rj, rj2);
