@@ -45,6 +45,45 @@ static Geometry geometry(const double a[3], const double b[3]) {
   return g;
 }
 
+// Pairs of neighbours near a test's limits: a, a random direction at a
+// length log-uniform in [length_lo, length_hi]; b, a turned by an angle
+// log-uniform in [angle_lo, angle_hi] about a random axis, set so that the
+// line where their bisectors meet lies near the cell's radius R (returned):
+// bisectors at distances h and h + delta meet about delta / sin from the
+// foot, delta = sin * (a multiple of R around 1), or exactly at the foot.
+class PairSampler {
+ public:
+  explicit PairSampler(unsigned seed) : rng_(seed) {}
+
+  double draw(double length_lo, double length_hi, double angle_lo, double angle_hi, double a[3], double b[3]) {
+    double u[3] = {normal_(rng_), normal_(rng_), normal_(rng_)};
+    const double un = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    for (double& x : u) x /= un;
+    double v[3] = {normal_(rng_), normal_(rng_), normal_(rng_)};
+    const double uv = v[0] * u[0] + v[1] * u[1] + v[2] * u[2];
+    for (int e = 0; e < 3; ++e) v[e] -= uv * u[e];
+    const double vn = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    for (double& x : v) x /= vn;
+    const double length = log_uniform(length_lo, length_hi);
+    const double radius = length * log_uniform(0.5, 1.0) * (uniform() < 0.8 ? 1.0 : log_uniform(1.0, 50.0));
+    const double angle = log_uniform(angle_lo, angle_hi);
+    const double delta = std::sin(angle) * radius * log_uniform(0.05, 6.0) * (uniform() < 0.5 ? 1.0 : 0.0);
+    const double b_length = length + 2.0 * delta;
+    for (int e = 0; e < 3; ++e) {
+      a[e] = length * u[e];
+      b[e] = b_length * (std::cos(angle) * u[e] + std::sin(angle) * v[e]);
+    }
+    return radius;
+  }
+
+ private:
+  double uniform() { return uniform_(rng_); }
+  double log_uniform(double lo, double hi) { return lo * std::pow(hi / lo, uniform()); }
+  std::mt19937_64 rng_;
+  std::uniform_real_distribution<double> uniform_{0.0, 1.0};
+  std::normal_distribution<double> normal_{0.0, 1.0};
+};
+
 // The same for two double neighbours, in long double: the cross product
 // and the line's foot from b - a (no cancellation at sines near 1e-9).
 static Geometry geometry_wide(const double a_in[3], const double b_in[3]) {
@@ -69,31 +108,13 @@ static Geometry geometry_wide(const double a_in[3], const double b_in[3]) {
 }
 
 static int run_double(unsigned seed, long pairs) {
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<double> uniform(0.0, 1.0);
-  std::normal_distribution<double> normal(0.0, 1.0);
-  const auto log_uniform = [&](double lo, double hi) { return lo * std::pow(hi / lo, uniform(rng)); };
+  PairSampler sampler(seed);
   constexpr double kSine = torchvor::core::FaceSineLimit<double, double>::value;
   long missed = 0, spurious = 0, flagged = 0, required = 0;
   for (long p = 0; p < pairs; ++p) {
-    double u[3] = {normal(rng), normal(rng), normal(rng)};
-    const double un = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
-    for (double& x : u) x /= un;
-    double v[3] = {normal(rng), normal(rng), normal(rng)};
-    const double uv = v[0] * u[0] + v[1] * u[1] + v[2] * u[2];
-    for (int e = 0; e < 3; ++e) v[e] -= uv * u[e];
-    const double vn = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    for (double& x : v) x /= vn;
-    const double length = log_uniform(1e-100, 1e100);
-    const double radius = length * log_uniform(0.5, 1.0) * (uniform(rng) < 0.8 ? 1.0 : log_uniform(1.0, 50.0));
-    const double angle = log_uniform(1e-11, 4e-7);
-    const double delta = std::sin(angle) * radius * log_uniform(0.05, 6.0) * (uniform(rng) < 0.5 ? 1.0 : 0.0);
-    const double b_length = length + 2.0 * delta;
     double a[3], b[3];
-    for (int e = 0; e < 3; ++e) {
-      a[e] = length * u[e];
-      b[e] = b_length * (std::cos(angle) * u[e] + std::sin(angle) * v[e]);
-    }
+    const double radius = sampler.draw(1e-100, 1e100, 1e-11, 4e-7, a, b);
+    const double length = std::sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
     const Geometry g = geometry_wide(a, b);
     const bool flag = core::nearly_parallel_bisectors(core::Vec3<double>{a[0], a[1], a[2]},
                                                       core::Vec3<double>{b[0], b[1], b[2]}, radius * radius, kSine);
@@ -115,33 +136,13 @@ int main(int argc, char** argv) {
   const unsigned seed = argc > 1 ? unsigned(std::atoi(argv[1])) : 0u;
   const long pairs = argc > 2 ? std::atol(argv[2]) : 200000;
   if (argc > 3 && std::strcmp(argv[3], "double") == 0) return run_double(seed, pairs);
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<double> uniform(0.0, 1.0);
-  std::normal_distribution<double> normal(0.0, 1.0);
-  const auto log_uniform = [&](double lo, double hi) { return lo * std::pow(hi / lo, uniform(rng)); };
+  PairSampler sampler(seed);
   long missed = 0, spurious = 0, flagged = 0, required = 0;
   for (long p = 0; p < pairs; ++p) {
-    // a: a random direction at a random scale; b: a turned by a small angle
-    // about a random axis and set so that the line lies near the radius R.
-    double u[3] = {normal(rng), normal(rng), normal(rng)};
-    const double un = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
-    for (double& x : u) x /= un;
-    double v[3] = {normal(rng), normal(rng), normal(rng)};
-    const double uv = v[0] * u[0] + v[1] * u[1] + v[2] * u[2];
-    for (int e = 0; e < 3; ++e) v[e] -= uv * u[e];
-    const double vn = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    for (double& x : v) x /= vn;
-    const double length = log_uniform(1e-15, 1e4);
-    const double radius = length * log_uniform(0.5, 1.0) * (uniform(rng) < 0.8 ? 1.0 : log_uniform(1.0, 50.0));
-    const double angle = log_uniform(1e-7, 4e-3);
-    // Bisectors at distances h and h + delta meet about delta / sin from the
-    // foot: delta = sin * (a multiple of R around 1).
-    const double delta = std::sin(angle) * radius * log_uniform(0.05, 6.0) * (uniform(rng) < 0.5 ? 1.0 : 0.0);
-    const double b_length = length + 2.0 * delta;
-    const float af[3] = {float(length * u[0]), float(length * u[1]), float(length * u[2])};
-    const float bf[3] = {float(b_length * (std::cos(angle) * u[0] + std::sin(angle) * v[0])),
-                         float(b_length * (std::cos(angle) * u[1] + std::sin(angle) * v[1])),
-                         float(b_length * (std::cos(angle) * u[2] + std::sin(angle) * v[2]))};
+    double ad[3], bd[3];
+    const double radius = sampler.draw(1e-15, 1e4, 1e-7, 4e-3, ad, bd);
+    const float af[3] = {float(ad[0]), float(ad[1]), float(ad[2])};
+    const float bf[3] = {float(bd[0]), float(bd[1]), float(bd[2])};
     double a[3] = {af[0], af[1], af[2]}, b[3] = {bf[0], bf[1], bf[2]};
     const double a2 = a[0] * a[0] + a[1] * a[1] + a[2] * a[2];
     const double b2 = b[0] * b[0] + b[1] * b[1] + b[2] * b[2];
