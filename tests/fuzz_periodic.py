@@ -45,7 +45,7 @@ def images_round(lo: np.ndarray, hi: np.ndarray, axes) -> bool:
     return bool(np.any(np.asarray(axes) & (lo != 0)))
 
 
-def near_pair_across_a_face(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, axes, rounds: float = 1e4) -> bool:
+def near_pair_across_a_face(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, axes, rounds: float = 1e8) -> bool:
     """Whether two points lie closer than `rounds` roundings of the box's
     coordinates across a periodic face (nearer through an image than
     directly): api.md's limit of periodic cells whose images round."""

@@ -501,28 +501,101 @@ def _ring_order(ring, normal):
     return sorted(ring, key=cmp_to_key(compare))
 
 
+class _ExactCell:
+    """A convex polytope in exact arithmetic, clipped one plane at a time:
+    vertex k is `coords[k]` (exact), `through[k]` the indices of the planes
+    through it; `approx` (in the order of `order`) their float64 rounding,
+    which screens the exact tests (a vertex clearly inside a plane is not
+    tested exactly). Starts as the box (planes 0-5: for each axis its hi
+    wall, then its lo wall)."""
+
+    def __init__(self, planes):
+        self.planes = planes
+        self.coords, self.through, self.count = {}, {}, 0
+        for pick in np.ndindex(2, 2, 2):
+            triple = [2 * a + int(pick[a]) for a in range(3)]
+            self._add(_solve3([planes[t] for t in triple]), set(triple))
+        self._floats()
+
+    def _add(self, v, through) -> None:
+        self.coords[self.count], self.through[self.count] = v, through
+        self.count += 1
+
+    def _floats(self) -> None:
+        self.order = list(self.coords)
+        self.approx = np.array([[float(x) for x in self.coords[k]] for k in self.order]).reshape(-1, 3)
+
+    def vertices(self):
+        """{exact vertex: indices of the planes through it}."""
+        return {self.coords[k]: self.through[k] for k in self.order}
+
+    def clip(self, index: int) -> None:
+        """Keep n . x <= c of planes[index] = (n, c); the index joins the sets
+        of the vertices on it. Two vertices end one edge when two non-parallel
+        planes pass through both (a line meets a convex polytope in one
+        segment, whose ends are its only vertices on the line); where the plane
+        crosses an edge, the new vertex is solved from those two and it."""
+        n, c = self.planes[index]
+        nf, cf = np.array([float(x) for x in n]), float(c)
+        screen = self.approx @ nf - cf
+        slack = 1e-9 * (np.abs(self.approx).sum(axis=1) * np.abs(nf).max() + abs(cf))  # far above its rounding
+        side = {self.order[r]: _dot(n, self.coords[self.order[r]]) - c for r in np.flatnonzero(screen > -slack)}
+        for k in (k for k, s in side.items() if s == 0):
+            self.through[k].add(index)
+        beyond = [k for k, s in side.items() if s > 0]
+        if not beyond:
+            return
+        inside = [k for k in self.order if side.get(k, -1) < 0]
+        added = []
+        for w in beyond:
+            for u in inside:
+                common = self.through[u] & self.through[w]
+                pair = next(((a, b) for a, b in itertools.combinations(sorted(common), 2)
+                             if _cross(self.planes[a][0], self.planes[b][0]) != (0, 0, 0)), None)
+                if pair is not None:
+                    added.append((_solve3([self.planes[pair[0]], self.planes[pair[1]], self.planes[index]]),
+                                  common | {index}))
+        for w in beyond:
+            del self.coords[w], self.through[w]
+        for v, through in added:
+            self._add(v, through)
+        self._floats()
+
+
+def _violated(cell, rel_float, offset_float, rel, offset, chosen):
+    """The points whose bisector (rel[j] . x <= offset(j)) some vertex of the
+    _ExactCell lies beyond, exactly; a float64 screen (rel_float,
+    offset_float: the same planes rounded) spares the exact test of points
+    clearly inside them."""
+    vertices, corners = [cell.coords[k] for k in cell.order], cell.approx
+    size = float(np.abs(corners).max()) * float(np.abs(rel_float).max()) + float(np.abs(offset_float).max())
+    slack = 1e-9 * size  # far above the screen's rounding
+    reach = (corners @ rel_float.T).max(axis=0) - offset_float
+    near = [int(j) for j in np.flatnonzero(reach > -slack) if int(j) not in chosen and rel[int(j)] != (0, 0, 0)]
+    return sorted(j for j in near if any(_dot(rel[j], v) > offset(j) for v in vertices))
+
+
 def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] = None, weights=None) -> CellOracle:
-    """Voronoi cell of points[i] clipped to box = (lo, hi) in exact rational
-    arithmetic (Fractions over the float64 inputs): for cells whose vertices
+    """Voronoi cell of points[i] clipped to box = (lo, hi), its vertices in exact
+    rational arithmetic (Fractions over the float64 inputs), its integrals
+    exact per tetrahedron and summed in float64: for cells whose vertices
     nearly coincide (bisectors of tight clusters), where Qhull's vertices and
     their merging are off by more than float64 rounding.
 
-    The cell is first built from the half-spaces of `candidates` (point indices;
-    default: Qhull's facet neighbours, voronoi_cell_oracle) and the box, every
-    vertex from a triple of planes checked against all of them; then each
-    vertex is checked against the bisectors of all points, and a violated one
-    joins the candidates until none is (then the cell is exact: the candidate
-    cell contains the true one and lies inside every half-space). Integrals
+    The box is clipped by the half-spaces of `candidates` (point indices;
+    default: Qhull's facet neighbours, voronoi_cell_oracle) one at a time
+    (_clip_exact); then each vertex is checked against the bisectors of all
+    points, and the violated ones clip it too, until none is (then the cell is
+    exact: it lies inside every half-space, and every one cut it). Integrals
     over the fans of the faces from the seed (as tetrahedron_integrals).
-    Slow (seconds a cell): for single cells of regression tests. Exact copies
+    Slow (about a second per hundred facets): for single cells. Exact copies
     among the candidates give one plane, and copies of the seed none; a seed
     with a lower-index copy (a DUPLICATE cell) is not handled here (use
     voronoi_cell_oracle). With `weights` (N,), the power cell (power
     bisectors; not an empty one: use voronoi_cell_oracle), its fans taken
-    from the mean of its vertices (the seed can lie outside it).
+    from a vertex (the seed can lie outside it).
     """
     from fractions import Fraction
-    from itertools import combinations
 
     pts = _np64(points)
     lo, hi = (_np64(b).reshape(3) for b in box)
@@ -550,40 +623,44 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
         if rel[j] != (0, 0, 0) and rel[j] not in offsets:
             offsets.add(rel[j])
             chosen.append(j)
-    while True:
-        planes = box_planes + [bisector(j) for j in chosen]
-        vertices = {}  # exact vertex -> indices of the planes through it
-        for triple in combinations(range(len(planes)), 3):
-            v = _solve3([planes[t] for t in triple])
-            if v is None or v in vertices:
-                continue
-            if all(_dot(n, v) <= c for n, c in planes):
-                vertices[v] = [t for t, (n, c) in enumerate(planes) if _dot(n, v) == c]
-        violated = set()
-        for v in vertices:
-            for j in range(len(pts)):
-                if j != i and j not in chosen and rel[j] != (0, 0, 0) and _dot(rel[j], v) > offset(j):
-                    violated.add(j)
+    rel_float = pts - pts[i]
+    offset_float = 0.5 * (rel_float ** 2).sum(axis=1)
+    if weights is not None:
+        offset_float += 0.5 * (float(w[i]) - _np64(weights).reshape(-1))
+    planes = box_planes + [bisector(j) for j in chosen]
+    cell = _ExactCell(planes)
+    for t in sorted(range(6, len(planes)), key=lambda t: planes[t][1] * abs(planes[t][1]) / _dot(*[planes[t][0]] * 2)):
+        cell.clip(t)  # nearest bisectors first: the cell shrinks early
+    while True:  # every vertex inside every point's bisector, or the violated ones clip it too
+        violated = _violated(cell, rel_float, offset_float, rel, offset, set(chosen) | {i})
         if not violated:
             break
-        chosen = sorted(set(chosen) | violated)
+        for j in violated:
+            chosen.append(j)
+            planes.append(bisector(j))
+            cell.clip(len(planes) - 1)
+    vertices = cell.vertices()
     # Each face: its vertices in order around it (_ring_order), fanned from
-    # the first; tetrahedra with the vertices' mean o (inside the cell).
+    # the first; tetrahedra with apex o in the closed convex cell: the seed (short
+    # numbers), or for a power cell (whose seed can lie outside it) its least vertex.
     if not vertices:
         raise RuntimeError("exact oracle: empty cell")
-    o = tuple(sum(v[a] for v in vertices) / len(vertices) for a in range(3))
+    o = (Fraction(0),) * 3 if weights is None else min(vertices)
     on_plane = {}
     for v, through in vertices.items():
         for t in through:
             on_plane.setdefault(t, []).append(v)
-    volume = Fraction(0)
-    first = [Fraction(0)] * 3
-    second = Fraction(0)
+    # Each tetrahedron's integrals exact, then rounded and summed by fsum: exact sums of
+    # many vertices' denominators grow too long; the volumes and second moments are sums of
+    # positive terms (relative error 1e-16), the first moments within 1e-16 of the radius.
+    volumes, firsts, seconds = [], [], []
     area2_total = 0.0
     faces = {}  # as voronoi_cell_oracle's: by point (>= 0) or wall (-1 - w)
+    seen = set()  # a face on two coincident planes (a bisector on a box wall) counted once
     for t, ring in on_plane.items():
-        if len(ring) < 3:
+        if len(ring) < 3 or frozenset(ring) in seen:
             continue
+        seen.add(frozenset(ring))
         ordered = _ring_order(ring, planes[t][0])
         a0 = ordered[0]
         face_area2, face_moment = 0.0, np.zeros(3)
@@ -591,11 +668,10 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
             six = _dot(tuple(a0[a] - o[a] for a in range(3)),
                        _cross(tuple(b[a] - o[a] for a in range(3)), tuple(c[a] - o[a] for a in range(3))))
             vol = abs(six) / 6
-            volume += vol
+            volumes.append(float(vol))
             total = tuple(o[a] + a0[a] + b[a] + c[a] for a in range(3))
-            for a in range(3):
-                first[a] += vol * total[a] / 4
-            second += vol / 20 * (_dot(o, o) + _dot(a0, a0) + _dot(b, b) + _dot(c, c) + _dot(total, total))
+            firsts.append([float(vol * total[a] / 4) for a in range(3)])
+            seconds.append(float(vol / 20 * (_dot(o, o) + _dot(a0, a0) + _dot(b, b) + _dot(c, c) + _dot(total, total))))
             e1 = np.array([float(b[a] - a0[a]) for a in range(3)])
             e2 = np.array([float(c[a] - a0[a]) for a in range(3)])
             area2 = float(np.linalg.norm(np.cross(e1, e2)))
@@ -610,9 +686,10 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
     relative = np.array([[float(x) for x in v] for v in vertices])
     verts = relative + seed_np
     radius = max((math.sqrt(float(_dot(v, v))) for v in vertices), default=0.0)  # exact |v|^2, one rounding
-    centroid = np.array([float(first[a] / volume) for a in range(3)]) + seed_np
+    volume, second = math.fsum(volumes), math.fsum(seconds)
+    centroid = np.array([math.fsum(f[a] for f in firsts) / volume for a in range(3)]) + seed_np
     facets = sorted(chosen[t - 6] for t, ring in on_plane.items() if len(ring) >= 3 and t >= 6)
-    return CellOracle(float(volume), centroid, float(second), verts, np.array(facets, dtype=np.int64),
+    return CellOracle(volume, centroid, second, verts, np.array(facets, dtype=np.int64),
                       seed_np.copy(), area=0.5 * area2_total, faces=faces, relative_radius=radius)
 
 

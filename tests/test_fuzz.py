@@ -72,6 +72,7 @@ REGRESSIONS = [
     (33, 28, 1000000, "both", "4 clouds, periodic power cells: retried rows out of cloud order (knn's query_batch)"),
     (44, 2359, 1000000, "both", "periodic thin slab, lattice jittered 1e-9: the oracle moved points inside the box (oracle)"),
     (44, 1078, 1000000, "both", "a pair 2e-12 apart in a 33-point gradient: faces not closed on CUDA (graph)"),
+    (44, 3379, 1000000, "both", "periodic thin slab, lattice planes 2e-11 apart across a face: sum 2e-8 off (images round)"),
 ]
 
 
