@@ -565,14 +565,23 @@ class _ExactCell:
 def _violated(cell, rel_float, offset_float, rel, offset, chosen):
     """The points whose bisector (rel[j] . x <= offset(j)) some vertex of the
     _ExactCell lies beyond, exactly; a float64 screen (rel_float,
-    offset_float: the same planes rounded) spares the exact test of points
-    clearly inside them."""
+    offset_float: the same planes rounded) spares the exact test of a vertex
+    clearly inside a point's plane (by far more than the screen's rounding,
+    which scales with that point's own distance and offset)."""
     vertices, corners = [cell.coords[k] for k in cell.order], cell.approx
-    size = float(np.abs(corners).max()) * float(np.abs(rel_float).max()) + float(np.abs(offset_float).max())
-    slack = 1e-9 * size  # far above the screen's rounding
-    reach = (corners @ rel_float.T).max(axis=0) - offset_float
-    near = [int(j) for j in np.flatnonzero(reach > -slack) if int(j) not in chosen and rel[int(j)] != (0, 0, 0)]
-    return sorted(j for j in near if any(_dot(rel[j], v) > offset(j) for v in vertices))
+    radius = float(np.abs(corners).sum(axis=1).max())
+    slack = 1e-9 * (radius * np.abs(rel_float).sum(axis=1) + np.abs(offset_float))
+    violated = []
+    for begin in range(0, len(rel_float), 4096):  # bounded memory: vertices x a chunk of points
+        screen = corners @ rel_float[begin:begin + 4096].T - offset_float[begin:begin + 4096]
+        for column in np.flatnonzero((screen > -slack[begin:begin + 4096]).any(axis=0)):
+            j = begin + int(column)
+            if j in chosen or rel[j] == (0, 0, 0):
+                continue
+            rows = np.flatnonzero(screen[:, column] > -slack[j])
+            if any(_dot(rel[j], vertices[r]) > offset(j) for r in rows[np.argsort(-screen[rows, column])]):
+                violated.append(j)
+    return violated
 
 
 def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] = None, weights=None) -> CellOracle:

@@ -61,3 +61,30 @@ def test_exact_oracle_with_weights_matches_qhull():
         assert exact.second_moment == pytest.approx(qhull.second_moment, rel=1e-9)
         checked += 1
     assert checked >= 5
+
+
+def test_exact_oracle_counts_a_face_on_a_wall_once():
+    """A point mirrored across the wall x = 1 puts its bisector on the wall:
+    the cell is the one without it (the old triple enumeration counted that
+    face twice)."""
+    points = np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [0.2, 0.3, 0.4], [0.8, 0.9, 0.1]])
+    box = (np.zeros(3), np.ones(3))
+    with_mirror = exact_cell_oracle(points, 0, box, candidates=[1, 2, 3])
+    without = exact_cell_oracle(points[[0, 2, 3]], 0, box, candidates=[1, 2])
+    assert with_mirror.volume == without.volume
+    assert with_mirror.volume == pytest.approx(voronoi_cell_oracle(points, 0, box).volume, rel=1e-14)
+
+
+def test_exact_oracle_takes_cells_of_hundreds_of_faces():
+    """A seed at the centre of 300 points on a sphere (each radius jittered):
+    every point gives a face; the exact cell agrees with Qhull's."""
+    rng = np.random.default_rng(4)
+    directions = rng.normal(size=(300, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    points = np.concatenate([[[0.5, 0.5, 0.5]], 0.5 + 0.1 * directions * (1 + 0.01 * rng.random((300, 1)))])
+    box = (np.zeros(3), np.ones(3))
+    qhull = voronoi_cell_oracle(points, 0, box)
+    exact = exact_cell_oracle(points, 0, box, candidates=range(1, 301))
+    assert len(exact.faces) == len(qhull.facet_neighbors) > 250
+    assert exact.volume == pytest.approx(qhull.volume, rel=1e-12)
+    np.testing.assert_allclose(exact.centroid, qhull.centroid, atol=1e-13)
