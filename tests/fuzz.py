@@ -107,7 +107,7 @@ CELL_RTOL = {torch.float64: 1e-9, torch.float32: 1e-4}
 # the sum of a cloud's volumes, relative to its box volume
 SUM_RTOL = {torch.float64: 1e-9, torch.float32: 1e-4}
 CELL_IMPLS = ("default", "thread", "cooperative")  # "all" runs thread and cooperative
-EXACT_MAX_FACETS = 1000  # the exact oracle takes about 10 s for a cell of 700 facets
+EXACT_MAX_FACETS = 1000  # the most Qhull facets a cell may have for the exact oracle to arbitrate it
 SLOWEST_CASES = 5  # the report lists the slowest cases (their time covers the checks too)
 COUNTERS = ("cases", "runs", "cells", "certified", "oracle_skipped", "failed_cells", "silently_wrong",
             "wrong_volume_sums", "unexpected_exceptions", "timeouts", "expected_errors", "second_moment_off",

@@ -593,11 +593,11 @@ def exact_cell_oracle(points, i: int, box, candidates: Optional[Sequence[int]] =
 
     The box is clipped by the half-spaces of `candidates` (point indices;
     default: Qhull's facet neighbours, voronoi_cell_oracle) one at a time
-    (_clip_exact); then each vertex is checked against the bisectors of all
+    (_ExactCell.clip); then each vertex is checked against the bisectors of all
     points, and the violated ones clip it too, until none is (then the cell is
     exact: it lies inside every half-space, and every one cut it). Integrals
     over the fans of the faces from the seed (as tetrahedron_integrals).
-    Slow (about a second per hundred facets): for single cells. Exact copies
+    Slow (its time grows with the facets): for single cells. Exact copies
     among the candidates give one plane, and copies of the seed none; a seed
     with a lower-index copy (a DUPLICATE cell) is not handled here (use
     voronoi_cell_oracle). With `weights` (N,), the power cell (power
