@@ -157,11 +157,21 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   // The retry loop's passes (the tests may inject a fault after the first).
   auto run_round = with_test_faults(options.testing, out, run);
   auto run_speculative_round = with_test_faults(options.testing, out, run_speculative);
-  PassSettings pass{std::min(k, largest_cloud), 0, Precision::kInput};
-  first_pass_k = pass.k;
-  at::Tensor pending = positions;
-  // The last scan's failed cells, and whether some of them no pass wrote.
-  at::Tensor last_failed;
+  const PassSettings first_pass{std::min(k, largest_cloud), 0, Precision::kInput};
+  first_pass_k = first_pass.k;
+  // Cells still to compute, in groups of one pass's settings each: a round
+  // runs every group; its failed cells that ask for more precision go on in
+  // a group of their own, so that the cells asking only for neighbours or
+  // planes keep their arithmetic (double-double is many times slower).
+  struct Group {
+    at::Tensor cells;
+    PassSettings pass;
+  };
+  std::vector<Group> groups{{positions, first_pass}};
+  // Failed cells no pass can help further (all of them in `stuck`): those at
+  // the largest tier go to the host (giant cells), any no pass wrote are
+  // poisoned (`unwritten`: some may be).
+  std::vector<at::Tensor> stuck, giant;
   bool unwritten = false;
   const bool is_double = points.scalar_type() == at::kDouble;
   const auto scan = [&](const at::Tensor& cells, bool all_positions, const at::Tensor& failed_cells,
@@ -172,77 +182,117 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                                                    cells.size(0), scan_threads, failed_cells.data_ptr<int32_t>(),
                                                    words, live_count});
   };
+  // Adds `cells` to the next round's group of `settings` (one group a setting).
+  const auto add_to = [](std::vector<Group>& next, const at::Tensor& cells, const PassSettings& settings) {
+    if (cells.size(0) == 0) return;
+    for (Group& group : next) {
+      if (group.pass == settings) {
+        group.cells = at::cat({group.cells, cells});
+        return;
+      }
+    }
+    next.push_back({cells, settings});
+  };
   // The outputs finished before the first read (with on_outputs), which
   // stand unless a later pass runs (dropped then, so that two sets of
   // outputs are not held at once) or unwritten cells are poisoned.
   c10::optional<VoronoiOutputs> finished_early;
-  for (int attempt = 0; attempt < 64 && pending.size(0) > 0; ++attempt) {
+  for (int attempt = 0; attempt < 64 && !groups.empty(); ++attempt) {
     if (attempt > 0) finished_early.reset();
-    run_round(pending, pass, neighbor_spread);
-    // Which status codes this pass produced and which cells failed (words 0
-    // and 1), in one read (one device sync). The failed cells come in no set
-    // order (the scan appends them as it finds them); each cell's result
-    // does not depend on the order of a pass.
-    const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
-    const at::Tensor words = at::zeros({4}, pending.options());
-    scan(pending, !rows.has_value() && pending.is_same(positions), failed_cells, words.data_ptr<int32_t>(), nullptr);
-    // After the first pass, the retry it most likely needs runs before the
-    // host reads the words: on the failed cells with more neighbours, if
-    // they fit its capacity (core::DeviceCount), its own outcome in words 2
-    // and 3 (the same read).
-    // (Not in voronoi_graph's passes: their cells write faces, the speculative kernels do not.)
-    const Speculation speculation =
-        attempt == 0 && faces == nullptr
-            ? speculative_retry(pass, pending.size(0), largest_cloud, memory_budget, options)
-            : Speculation{};
-    at::Tensor speculative_failed;
-    if (speculation.capacity > 0) {
-      const at::Tensor cells = failed_cells.slice(0, 0, speculation.capacity);
-      const core::DeviceCount live{words.data_ptr<int32_t>() + 1, speculation.capacity};
-      run_speculative_round(cells, speculation.pass, neighbor_spread, live);
-      speculative_failed = at::empty({speculation.capacity}, pending.options());
-      scan(cells, false, speculative_failed, words.data_ptr<int32_t>() + 2, live.count);
+    std::vector<Group> next_groups;
+    for (const Group& group : groups) {
+      const at::Tensor& pending = group.cells;
+      PassSettings pass = group.pass;
+      run_round(pending, pass, neighbor_spread);
+      // Which status codes this pass produced and which cells failed (words 0
+      // and 1), in one read (one device sync). The failed cells come in no set
+      // order (the scan appends them as it finds them); each cell's result
+      // does not depend on the order of a pass.
+      const at::Tensor failed_cells = at::empty({pending.size(0)}, pending.options());
+      const at::Tensor words = at::zeros({4}, pending.options());
+      scan(pending, !rows.has_value() && pending.is_same(positions), failed_cells, words.data_ptr<int32_t>(),
+           nullptr);
+      // After the first pass, the retry it most likely needs runs before the
+      // host reads the words: on the failed cells with more neighbours, if
+      // they fit its capacity (core::DeviceCount), its own outcome in words 2
+      // and 3 (the same read).
+      // (Not in voronoi_graph's passes: their cells write faces, the speculative kernels do not.)
+      const Speculation speculation =
+          attempt == 0 && faces == nullptr
+              ? speculative_retry(pass, pending.size(0), largest_cloud, memory_budget, options)
+              : Speculation{};
+      at::Tensor speculative_failed;
+      if (speculation.capacity > 0) {
+        const at::Tensor cells = failed_cells.slice(0, 0, speculation.capacity);
+        const core::DeviceCount live{words.data_ptr<int32_t>() + 1, speculation.capacity};
+        run_speculative_round(cells, speculation.pass, neighbor_spread, live);
+        speculative_failed = at::empty({speculation.capacity}, pending.options());
+        scan(cells, false, speculative_failed, words.data_ptr<int32_t>() + 2, live.count);
+      }
+      const typename Exec::HostRead reading(words);
+      if (attempt == 0 && !grid_order) {
+        // The inverse order depends on the grid alone: the device computes it
+        // while the host waits for the words (a round trip it would idle).
+        out.position_of_row = invert_order<Exec>(out.row_of_position, options.testing.scatter_bytes);
+      }
+      if (attempt == 0 && on_outputs) finished_early = finished();
+      const at::Tensor read = reading.wait();
+      int32_t seen_bits = read.data_ptr<int32_t>()[0];
+      int64_t failed = read.data_ptr<int32_t>()[1];
+      at::Tensor failed_list = failed_cells;
+      if (speculation.capacity > 0 && failed > 0 && failed <= speculation.capacity) {
+        // The speculative pass recomputed every failed cell: its outcome
+        // stands for this round's.
+        pass = speculation.pass;
+        seen_bits = read.data_ptr<int32_t>()[2];
+        failed = read.data_ptr<int32_t>()[3];
+        failed_list = speculative_failed;
+      }
+      const auto seen = [&](core::CellStatus code) {
+        return ((seen_bits >> (code - core::kNotComputed)) & 1) != 0;
+      };
+      const RetryAsks ask{seen(core::kSecurityRadiusNotReached),
+                          seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
+                          seen(core::kBoundaryError) || seen(core::kIllConditioned)};
+      const at::Tensor still_failed = failed_list.slice(0, 0, failed);
+      if (failed == 0) continue;
+      // Escalate what the failures ask for; a cell whose group has nothing
+      // left to raise stays failed.
+      const auto go_on = [&](const at::Tensor& cells, const RetryAsks& asks) {
+        const PassSettings next = escalated(pass, asks, largest_cloud, is_double, options.vertex_balls_k);
+        if (next == pass || !(asks.neighbors || asks.planes || asks.precision)) {
+          stuck.push_back(cells);
+          if (pass.tier == kLastTier) giant.push_back(cells);
+          unwritten = unwritten || seen(core::kNotComputed);
+        } else {
+          add_to(next_groups, cells, next);
+        }
+      };
+      if (ask.precision && (ask.neighbors || ask.planes)) {
+        const at::Tensor status = out.status.index_select(0, still_failed.to(at::kLong));
+        const at::Tensor imprecise = (status == int(core::kBoundaryError)) | (status == int(core::kIllConditioned));
+        go_on(still_failed.masked_select(imprecise), RetryAsks{false, false, true});
+        go_on(still_failed.masked_select(imprecise.logical_not()), RetryAsks{ask.neighbors, ask.planes, false});
+      } else {
+        go_on(still_failed, ask);
+      }
     }
-    const typename Exec::HostRead reading(words);
-    if (attempt == 0 && !grid_order) {
-      // The inverse order depends on the grid alone: the device computes it
-      // while the host waits for the words (a round trip it would idle).
-      out.position_of_row = invert_order<Exec>(out.row_of_position, options.testing.scatter_bytes);
-    }
-    if (attempt == 0 && on_outputs) finished_early = finished();
-    const at::Tensor read = reading.wait();
-    int32_t seen_bits = read.data_ptr<int32_t>()[0];
-    int64_t failed = read.data_ptr<int32_t>()[1];
-    at::Tensor failed_list = failed_cells;
-    if (speculation.capacity > 0 && failed > 0 && failed <= speculation.capacity) {
-      // The speculative pass recomputed every failed cell: its outcome
-      // stands for this round's.
-      pass = speculation.pass;
-      seen_bits = read.data_ptr<int32_t>()[2];
-      failed = read.data_ptr<int32_t>()[3];
-      failed_list = speculative_failed;
-    }
-    const auto seen = [&](core::CellStatus code) { return ((seen_bits >> (code - core::kNotComputed)) & 1) != 0; };
-    const RetryAsks ask{seen(core::kSecurityRadiusNotReached),
-                        seen(core::kTooManyPlanes) || seen(core::kTooManyVertices),
-                        seen(core::kBoundaryError) || seen(core::kIllConditioned)};
-    last_failed = failed_list.slice(0, 0, failed);
-    unwritten = seen(core::kNotComputed);
-    if (!(ask.neighbors || ask.planes || ask.precision || unwritten)) break;
-    pending = last_failed;
-    // Escalate what the failures ask for; stop when nothing is left to raise.
-    const PassSettings next = escalated(pass, ask, largest_cloud, is_double, options.vertex_balls_k);
-    if (next == pass) break;  // nothing left to raise
-    pass = next;
+    groups = std::move(next_groups);
   }
+  for (const Group& group : groups) stuck.push_back(group.cells);  // past the attempts
+  unwritten = unwritten || !groups.empty();
   // Cells that overflow even the largest tier: on the host, without bounds.
-  if (pass.tier == kLastTier && last_failed.size(0) > 0 && !options.testing.bounded_cells &&
-      finish_giant_cells(work_points, box, work_batch, last_failed, out) > 0) {
+  // Those still failed keep their status; any no pass wrote are poisoned.
+  const at::Tensor empty_cells = at::empty({0}, positions.options());
+  const at::Tensor giant_cells = giant.empty() ? empty_cells : at::cat(giant);
+  if (giant_cells.size(0) > 0 && !options.testing.bounded_cells &&
+      finish_giant_cells(work_points, box, work_batch, giant_cells, out) > 0) {
     finished_early.reset();
   }
   if (unwritten) {
-    Exec::for_each(last_failed.size(0), PoisonUnwrittenFunctor<io_t>{last_failed.data_ptr<int32_t>(),
-                                                                    out.status.data_ptr<int8_t>(), out.data<io_t>()});
+    const at::Tensor left = at::cat(stuck);
+    Exec::for_each(left.size(0), PoisonUnwrittenFunctor<io_t>{left.data_ptr<int32_t>(),
+                                                              out.status.data_ptr<int8_t>(), out.data<io_t>()});
   }
   if (finished_early.has_value() && !unwritten) return *finished_early;
   return finished();
