@@ -65,8 +65,7 @@ def test_exact_oracle_with_weights_matches_qhull():
 
 def test_exact_oracle_counts_a_face_on_a_wall_once():
     """A point mirrored across the wall x = 1 puts its bisector on the wall:
-    the cell is the one without it (the old triple enumeration counted that
-    face twice)."""
+    the cell is the one without it, the face on the wall counted once."""
     points = np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [0.2, 0.3, 0.4], [0.8, 0.9, 0.1]])
     box = (np.zeros(3), np.ones(3))
     with_mirror = exact_cell_oracle(points, 0, box, candidates=[1, 2, 3])
