@@ -24,6 +24,7 @@ template <typename T>
 struct CellRounding {
   T unsigned_volume;     // the tetrahedra's absolute volumes: the cancellation
   T conditioned_volume;  // float, double: the same weighted by how far rounding moves them (add_vertex)
+  T unsigned_second_moment;  // the tetrahedra's absolute second moments: the second moment's cancellation
 };
 
 // Volume, first moment and second moment (integral of |x|^2) of a cell,
@@ -43,6 +44,8 @@ struct CellMoments {
   T conditioned_six_volume;  // float, double: the same, weighted by how far rounding moves them (add_vertex)
   Vec3<T> m1;                // 24 * first moment
   T m2;                      // 120 * second moment
+  T unsigned_m2;             // 120 * sum of |tetrahedron second moment|: m2's cancellation, which
+                             // far feet (weighted by their |x|^2) make worse than the volume's
 
   // Whether the cell weighs its tetrahedra by their vertices' rounding
   // (float and double; not double-double, the last resort).
@@ -52,7 +55,7 @@ struct CellMoments {
   // pack's own lanes for a pack of vertices.
   using Weight = typename std::conditional<IsPack<T>::value, T, float>::type;
 
-  TV_HD static CellMoments zero() { return {T(0), T(0), T(0), {T(0), T(0), T(0)}, T(0)}; }
+  TV_HD static CellMoments zero() { return {T(0), T(0), T(0), {T(0), T(0), T(0)}, T(0), T(0)}; }
 
   // The six tetrahedra of vertex v, where planes a, b, c (in the triangle's
   // orientation) meet. Each foot is used by two tetrahedra: its |x|^2, and
@@ -117,6 +120,7 @@ struct CellMoments {
     volume = six_volume / T(6);
     rounding.unsigned_volume = unsigned_six_volume / T(6);
     rounding.conditioned_volume = conditioned_six_volume / T(6);
+    rounding.unsigned_second_moment = unsigned_m2 / T(120);
     first_moment = (T(1) / T(24)) * m1;
     second_moment = m2 / T(120);
   }
@@ -152,7 +156,9 @@ struct CellMoments {
     six_volume += six_vol;
     unsigned_six_volume += absolute;
     m1 = m1 + six_vol * sum;
-    m2 += six_vol * (f2 + edge_v2 + dot(sum, sum));
+    const T sum_of_squares = f2 + edge_v2 + dot(sum, sum);
+    m2 += six_vol * sum_of_squares;
+    unsigned_m2 += absolute * sum_of_squares;
     return absolute;
   }
 };

@@ -212,6 +212,7 @@ struct CooperativeCell {
     }
     moments.m1 = {lanes.sum(moments.m1.x), lanes.sum(moments.m1.y), lanes.sum(moments.m1.z)};
     moments.m2 = lanes.sum(moments.m2);
+    moments.unsigned_m2 = lanes.sum(moments.unsigned_m2);
     moments.finish(volume, first_moment, second_moment, rounding);
   }
 

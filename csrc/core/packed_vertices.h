@@ -104,12 +104,14 @@ TV_HD CellMoments<T, kGeneralPlanes> add_vertices_packed(const Cell& cell, Vec3<
     total.m1.y += select(valid, part.m1.y, zero);
     total.m1.z += select(valid, part.m1.z, zero);
     total.m2 += select(valid, part.m2, zero);
+    total.unsigned_m2 += select(valid, part.unsigned_m2, zero);
   }
   return {total.six_volume.sum(),
           total.unsigned_six_volume.sum(),
           total.conditioned_six_volume.sum(),
           {total.m1.x.sum(), total.m1.y.sum(), total.m1.z.sum()},
-          total.m2.sum()};
+          total.m2.sum(),
+          total.unsigned_m2.sum()};
 }
 
 }  // namespace core

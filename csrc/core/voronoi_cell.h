@@ -18,6 +18,9 @@ namespace core {
 // near 6e-5, and 1e-12 for float64. White noise, perturbed grids and blue
 // noise stay below 8; needle cells of tight clusters reach 1e9 and are
 // recomputed in wider arithmetic. 0: no limit (double-double, the last resort).
+// The same limit holds the second moment's cancellation (its tetrahedra's
+// absolute second moments over it), which far feet make the larger in slab
+// cells on a box wall.
 template <typename io_t, typename T> struct CancellationLimit { static constexpr double value = 0.0; };
 template <> struct CancellationLimit<float, float> { static constexpr double value = 16.0; };
 template <> struct CancellationLimit<float, double> { static constexpr double value = 1e9; };
@@ -126,7 +129,10 @@ TV_HD void integrate_cell(Cell& cell, Vec3<T> seed, CellIntegrals<T>& out) {
   constexpr double limit = CancellationLimit<io_t, T>::value;
   constexpr double condition_limit = ConditionLimit<io_t, T>::value;
   bool ill_conditioned = false;  // NaN measures count as over the limits
-  if constexpr (limit > 0.0) ill_conditioned = !(rounding.unsigned_volume <= T(limit) * out.volume);
+  if constexpr (limit > 0.0) {
+    ill_conditioned = !(rounding.unsigned_volume <= T(limit) * out.volume) ||
+                      !(rounding.unsigned_second_moment <= T(limit) * out.second_moment);
+  }
   if constexpr (condition_limit > 0.0) {
     ill_conditioned = ill_conditioned || !(rounding.conditioned_volume <= T(condition_limit) * out.volume);
   }
