@@ -194,6 +194,27 @@ def test_float32_cell_beside_close_pairs_keeps_its_radius(device, cells_impl, fu
     assert cells.volume[0].item() == pytest.approx(exact.volume, rel=1e-4)
 
 
+@pytest.mark.parametrize("fuzz_seed, index, cell", [(44, 4389, 2074), (44, 5379, 125794)])
+def test_float32_slab_cell_on_a_wall_keeps_its_second_moment(device, cells_impl, fuzz_seed, index, cell):
+    """A seed on a wall of a thin box (the fuzzer's cases): its cell is a slab
+    whose tetrahedra from the seed's far feet cancel more in the second moment
+    (weighted by |x|^2) than in the volume (4389: 69 against 13). Its float32
+    second moment must stay within the volume's precision, or the cell go to
+    float64 (the cancellation limit holds both)."""
+    import fuzz_cases  # the fuzzer's generator (tests/fuzz_cases.py)
+
+    case = fuzz_cases.make_case(fuzz_seed, index, max_n=1000000, dtype="both")
+    assert case.dtype == torch.float32
+    x = case.points
+    near = np.argsort(((x - x[cell]) ** 2).sum(1), kind="stable")[:100]
+    lohi = (case.boxes[0, 0], case.boxes[0, 1])
+    exact = exact_cell_oracle(x[near], 0, lohi)
+    cells = run(torch.tensor(x[near], dtype=torch.float32, device=device), tuple(b.tolist() for b in lohi))
+    assert cells.status[0].item() == CellStatus.SUCCESS
+    assert cells.volume[0].item() == pytest.approx(exact.volume, rel=6e-5)
+    assert cells.second_moment[0].item() == pytest.approx(exact.second_moment, rel=6e-5)
+
+
 @pytest.fixture(scope="module")
 def close_pairs_program(cpp_program):
     return cpp_program("close_pairs")
