@@ -234,7 +234,7 @@ struct NeighborHeap {
           memcpy(&distance[i], &key.data[i].d, sizeof(int64_t));
           index[i] = key.data[i].i;
         }
-        pair_ranks(distance, index, size, rank);
+        ranks_by_first_of_pairs(distance, index, size, rank);
       }
       for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
       ranked = true;

@@ -1,6 +1,7 @@
 // Host-only: the rank of each of n distinct non-negative 64-bit keys (the
 // number of smaller keys), which is its position in sorted order; and of
-// pairs of them (pair_ranks: float64 distances, then indices).
+// pairs of them (pair_ranks, ranks_by_first_of_pairs: float64 distances,
+// then indices).
 //
 // The kNN's last step sorts its k best keys. For k up to ~100 a rank count
 // is quadratic but branch-free, and with AVX2 (four 64-bit compares per
@@ -73,6 +74,22 @@ __attribute__((target("avx2"))) inline void pair_ranks(const int64_t* first, con
     }
     rank[i] = static_cast<int32_t>(smaller);
   }
+}
+
+// pair_ranks for pairs whose first elements are nearly always distinct
+// (float64 distances, then indices): ranks by the first alone, which holds
+// when those ranks are all different; else by the pairs.
+__attribute__((target("avx2"))) inline void ranks_by_first_of_pairs(const int64_t* first, const int64_t* second,
+                                                                     int32_t n, int32_t* rank) {
+  key_ranks(first, n, rank);
+  uint64_t taken[(kMaxRankedKeys + 63) / 64] = {};
+  int32_t distinct = 0;
+  for (int32_t i = 0; i < n; ++i) {
+    const uint64_t bit = uint64_t(1) << (rank[i] & 63);
+    distinct += int32_t((taken[rank[i] >> 6] & bit) == 0u);
+    taken[rank[i] >> 6] |= bit;
+  }
+  if (distinct != n) pair_ranks(first, second, n, rank);
 }
 
 }  // namespace core
