@@ -171,6 +171,19 @@ def test_ill_conditioned_float32_cell_recomputed_in_float64(device, cells_impl):
     assert cells.second_moment[5].item() == pytest.approx(reference.second_moment[5].item(), rel=1e-5, abs=0)
 
 
+def fuzz_cell_neighbourhood(fuzz_seed, index, cell, max_n, dtype):
+    """A float32 fuzz case's cell (tests/fuzz_cases.py): the 100 points nearest
+    to point `cell` (itself first), float64 numpy of float32 values, and the
+    case's box (lo, hi)."""
+    import fuzz_cases
+
+    case = fuzz_cases.make_case(fuzz_seed, index, max_n=max_n, dtype=dtype)
+    assert case.dtype == torch.float32
+    x = case.points
+    near = np.argsort(((x - x[cell]) ** 2).sum(1), kind="stable")[:100]
+    return x[near], (case.boxes[0, 0], case.boxes[0, 1])
+
+
 @pytest.mark.parametrize("fuzz_seed, index, max_n, cell", [(34, 7, 200000, 17488), (34, 7, 200000, 7186),
                                                           (35, 7, 20000, 11611)])
 def test_float32_cell_beside_close_pairs_keeps_its_radius(device, cells_impl, fuzz_seed, index, max_n, cell):
@@ -181,14 +194,9 @@ def test_float32_cell_beside_close_pairs_keeps_its_radius(device, cells_impl, fu
     no volume 2.3% to 31% past the exact cell's radius, the volume within
     3e-7. Such a cell must go to float64 (nearly_coincident_bisectors): its
     radius within 1e-3, its volume within 1e-4."""
-    import fuzz_cases  # the fuzzer's generator (tests/fuzz_cases.py)
-
-    case = fuzz_cases.make_case(fuzz_seed, index, max_n=max_n, dtype="float32")
-    x = case.points
-    near = np.argsort(((x - x[cell]) ** 2).sum(1), kind="stable")[:100]
-    lohi = (case.boxes[0, 0], case.boxes[0, 1])
-    exact = voronoi_cell_oracle(x[near], 0, lohi)
-    cells = run(torch.tensor(x[near], dtype=torch.float32, device=device), tuple(b.tolist() for b in lohi))
+    near, lohi = fuzz_cell_neighbourhood(fuzz_seed, index, cell, max_n, "float32")
+    exact = voronoi_cell_oracle(near, 0, lohi)
+    cells = run(torch.tensor(near, dtype=torch.float32, device=device), tuple(b.tolist() for b in lohi))
     assert cells.status[0].item() == CellStatus.SUCCESS
     assert cells.radius[0].item() == pytest.approx(exact.radius, rel=1e-3)
     assert cells.volume[0].item() == pytest.approx(exact.volume, rel=1e-4)
@@ -201,15 +209,9 @@ def test_float32_slab_cell_on_a_wall_keeps_its_second_moment(device, cells_impl,
     (weighted by |x|^2) than in the volume (4389: 69 against 13). Its float32
     second moment must stay within the volume's precision, or the cell go to
     float64 (the cancellation limit holds both)."""
-    import fuzz_cases  # the fuzzer's generator (tests/fuzz_cases.py)
-
-    case = fuzz_cases.make_case(fuzz_seed, index, max_n=1000000, dtype="both")
-    assert case.dtype == torch.float32
-    x = case.points
-    near = np.argsort(((x - x[cell]) ** 2).sum(1), kind="stable")[:100]
-    lohi = (case.boxes[0, 0], case.boxes[0, 1])
-    exact = exact_cell_oracle(x[near], 0, lohi)
-    cells = run(torch.tensor(x[near], dtype=torch.float32, device=device), tuple(b.tolist() for b in lohi))
+    near, lohi = fuzz_cell_neighbourhood(fuzz_seed, index, cell, 1000000, "both")
+    exact = exact_cell_oracle(near, 0, lohi)
+    cells = run(torch.tensor(near, dtype=torch.float32, device=device), tuple(b.tolist() for b in lohi))
     assert cells.status[0].item() == CellStatus.SUCCESS
     assert cells.volume[0].item() == pytest.approx(exact.volume, rel=6e-5)
     assert cells.second_moment[0].item() == pytest.approx(exact.second_moment, rel=6e-5)
