@@ -43,7 +43,8 @@ def test_avx_instructions_only_in_dispatched_functions():
 
     listing = subprocess.run(["objdump", "-d", "--no-show-raw-insn", "-C", extension.__file__],
                              check=True, capture_output=True, text=True).stdout
-    allowed = re.compile(r"torchvor::cpu::run_avx2_fma<|torchvor::core::(key_ranks|pair_ranks|ranks_by_first_of_pairs)\(")
+    allowed = re.compile(r"torchvor::cpu::run_avx2_fma<"
+                         r"|torchvor::core::(key_ranks|pair_ranks|ranks_by_first_of_pairs)\(")
     function, offenders = None, set()
     for line in listing.splitlines():
         header = re.match(r"^[0-9a-f]+ <(.*)>:$", line)

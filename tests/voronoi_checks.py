@@ -65,8 +65,9 @@ def assert_same_cells(cells, expected, dtype, points=None, box=UNIT):
         dist2[i] = math.inf  # the seed itself
         between = float(dist2.sort().values[fewer])  # neighbour `fewer` (0-based): read by one, not the other
         security2 = 4 * float(max(expected.radius[i], cells.radius[i])) ** 2
-        on_ball = math.inf if abs(between / security2 - 1) < 1e-3 else on_a_vertex_ball(x, i, box)
-        assert more == fewer + 1 and (abs(between / security2 - 1) < 1e-3 or on_ball < 1e-4), (
+        at_security = abs(between / security2 - 1) < 1e-3
+        on_ball = math.inf if at_security else on_a_vertex_ball(x, i, box)
+        assert more == fewer + 1 and (at_security or on_ball < 1e-4), (
             f"cell {i}: {fewer} and {more} neighbours, the one between at {between / security2:.6f} "
             f"of the radius of security squared, the nearest point to a vertex's ball {on_ball:.2e} off it")
     assert_same_integrals(cells, expected, dtype)
