@@ -5,6 +5,9 @@ on the CPU and moved to ``device``, so CPU and CUDA see the same values.
 """
 from __future__ import annotations
 
+import platform
+import subprocess
+
 import numpy as np
 import pytest
 import torch
@@ -743,3 +746,17 @@ def test_compile_knn_graph_padding(device, dtype, gen):
     got = compiled(points, batch)
     assert (got[0] >= 0).all(), f"compiled knn_graph returned padding edges: {got}"
     assert torch.equal(got, eager)
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="the rank counts are x86 code")
+def test_rank_counts_match_a_sort(cpp_program, seed):
+    """The CPU kNN's last step ranks its k best keys by counting (AVX2, or
+    AVX-512 where the CPU has it): both forms, the pair ranks and the float64
+    ranking by distance agree with std::sort for every n up to 128, on random,
+    sorted, reversed and consecutive keys and on tied distances
+    (tests/key_ranks.cpp; AVX-512 unchecked on a CPU without it)."""
+    program = cpp_program("key_ranks")
+    run = subprocess.run([str(program), str(seed)], capture_output=True, text=True, timeout=300)
+    if run.returncode == 77:
+        pytest.skip("no AVX2 on this CPU")
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
