@@ -17,7 +17,7 @@ import torch.multiprocessing as mp
 
 import torchvor
 import torchvor.distributed as tvd
-from torchvor import samples
+from torchvor import _slabs, samples
 
 UNIT = ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
 
@@ -94,13 +94,13 @@ def _worker(rank: int, size: int, port: int, report: str) -> None:
     dist.init_process_group("gloo", rank=rank, world_size=size, timeout=datetime.timedelta(seconds=120))
     problems = []
     rounds = []  # halos a call computed with: some scenario must grow its halo
-    cloud = tvd._Local.cloud
+    cloud = _slabs.Local.cloud
 
     def counted(self, width):
         rounds.append(width)
         return cloud(self, width)
 
-    tvd._Local.cloud = counted
+    _slabs.Local.cloud = counted
     try:
         for kind, how, dtype in SCENARIOS:
             points, batch, box = _cloud(kind, dtype)

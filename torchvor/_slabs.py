@@ -1,0 +1,489 @@
+"""How torchvor.distributed spreads one cloud over the ranks of a process
+group: the group and its collectives (Group), the checks every rank agrees on,
+the cut into slabs along the box's longest axis (Slabs), each rank's slab with
+a halo of the other slabs' points (Local), the rounds that widen the halo
+until every cell or row is certified (halo_rounds, certify_rows), and the
+results sent back to the ranks that own the points."""
+from __future__ import annotations
+
+import math
+from typing import List, Optional, Sequence
+
+import torch
+import torch.distributed as dist
+
+from .ops import CellStatus, VoronoiCells, as_box
+from .radius import radius as _plain_radius
+
+# The first halo: this many mean spacings (the cube root of the volume a point
+# of the box) on each side of a slab; then what the uncertified cells ask for.
+FIRST_HALO_SPACINGS = 3.0
+# A cell is certified when 2 radius (1 + CERTIFY_SLACK) stays inside the halo
+# (the radius of the computed vertices: see torchvor.periodic).
+CERTIFY_SLACK = 1e-2
+# Histogram bins along the cut axis that place the slab boundaries.
+BALANCE_BINS = 1 << 16
+
+
+class Group:
+    """The process group, the ranks' point counts and offsets."""
+
+    def __init__(self, group, count: int, device: torch.device):
+        if not dist.is_available() or not dist.is_initialized():
+            raise RuntimeError("torchvor.distributed: torch.distributed is not initialized "
+                               "(call torch.distributed.init_process_group first)")
+        self.group = group
+        self.rank = dist.get_rank(group)
+        self.size = dist.get_world_size(group)
+        self.device = device
+        counts = self.all_gather_int(count)
+        self.counts = counts
+        self.offset = sum(counts[: self.rank])
+        self.total = sum(counts)
+
+    def recounted(self, count: int) -> "Group":
+        """The same group, each rank holding `count` rows now (offsets follow)."""
+        other = object.__new__(Group)
+        other.group, other.rank, other.size, other.device = self.group, self.rank, self.size, self.device
+        other.counts = self.all_gather_int(count)
+        other.offset = sum(other.counts[: self.rank])
+        other.total = sum(other.counts)
+        return other
+
+    def all_gather_int(self, value: int) -> List[int]:
+        """Every rank's `value`, in rank order (one all_reduce)."""
+        row = torch.zeros(self.size, dtype=torch.int64, device=self.device)
+        row[self.rank] = value
+        dist.all_reduce(row, group=self.group)
+        return row.tolist()
+
+    def reduce(self, tensor: torch.Tensor, op) -> torch.Tensor:
+        """`tensor` reduced over the ranks (a copy)."""
+        out = tensor.clone()
+        dist.all_reduce(out, op=op, group=self.group)
+        return out
+
+    def exchange(self, dest: torch.Tensor, tensors: Sequence[torch.Tensor]) -> List[torch.Tensor]:
+        """Each row of `tensors` sent to rank `dest` of that row; returns the rows
+        this rank receives, by source rank, each source's rows in their order."""
+        order = torch.sort(dest, stable=True).indices
+        send = torch.bincount(dest, minlength=self.size)
+        recv = torch.empty_like(send)
+        dist.all_to_all_single(recv, send, group=self.group)
+        send_splits, recv_splits = send.tolist(), recv.tolist()
+        out = []
+        for tensor in tensors:
+            rows = tensor[order].contiguous()
+            received = rows.new_empty((sum(recv_splits), *rows.shape[1:]))
+            dist.all_to_all_single(received, rows, recv_splits, send_splits, group=self.group)
+            out.append(received)
+        return out
+
+
+def check_input(points: torch.Tensor, batch: Optional[torch.Tensor], caller: str) -> Optional[str]:
+    """What is wrong with this rank's points (None: nothing)."""
+    if not isinstance(points, torch.Tensor) or points.dim() != 2 or points.shape[1] != 3:
+        return f"points must be a tensor of shape (N, 3), got {getattr(points, 'shape', type(points))}"
+    if points.dtype not in (torch.float32, torch.float64):
+        return f"points must be float32 or float64, got {points.dtype}"
+    if not bool(torch.isfinite(points).all()):
+        return "points contain NaN or Inf"
+    if batch is not None:
+        if not isinstance(batch, torch.Tensor) or batch.shape != (points.shape[0],) or batch.dtype != torch.int64:
+            return "batch must be an int64 tensor of shape (N,)"
+        if batch.numel() and (bool((batch < 0).any()) or bool((batch[1:] < batch[:-1]).any())):
+            return "batch must be sorted and non-negative"
+    return None
+
+
+def agree(points: torch.Tensor, batch, caller: str, group) -> Group:
+    """The group, once every rank's input is valid and all share one dtype:
+    otherwise every rank raises (none is left waiting in a collective)."""
+    device = points.device if isinstance(points, torch.Tensor) else torch.device("cpu")
+    problem = check_input(points, batch, caller)
+    count = points.shape[0] if problem is None else 0
+    g = Group(group, count, device)
+    dtype_code = {torch.float32: 1, torch.float64: 2}.get(getattr(points, "dtype", None), 3)
+    flags = torch.tensor([int(problem is not None), dtype_code, -dtype_code], dtype=torch.int64, device=device)
+    flags = g.reduce(flags, dist.ReduceOp.MAX)
+    if problem is not None:
+        raise ValueError(f"torchvor.distributed.{caller}: {problem}")
+    if int(flags[0]):
+        raise ValueError(f"torchvor.distributed.{caller}: another rank's input is invalid (it raised the reason)")
+    if int(flags[1]) != -int(flags[2]):
+        raise TypeError(f"torchvor.distributed.{caller}: every rank must pass points of one dtype")
+    return g
+
+
+def global_batch(g: Group, batch: Optional[torch.Tensor], n: int,
+                  counts: Optional[List[int]] = None) -> Optional[torch.Tensor]:
+    """The batch vector, after checking that the ranks' vectors concatenate
+    in order (the whole cloud's must be sorted, as the plain ops ask);
+    `counts`: the ranks' row counts (default: their points')."""
+    counts = g.counts if counts is None else counts
+    has = int(batch is not None)
+    uses = g.reduce(torch.tensor([has, -has], device=g.device), dist.ReduceOp.MAX).tolist()
+    if not uses[0]:
+        return None
+    if uses[1] == 0:  # some rank passed none
+        raise ValueError("torchvor.distributed: every rank must pass a batch vector, or none")
+    ends = torch.full((2 * g.size,), -(1 << 62), dtype=torch.int64, device=g.device)  # below any entry
+    if n:
+        ends[2 * g.rank], ends[2 * g.rank + 1] = -batch[0], batch[-1]  # first negated: one MAX reduces both
+    ends = g.reduce(ends, dist.ReduceOp.MAX).tolist()
+    last = -1
+    for r in range(g.size):
+        if counts[r]:
+            if -ends[2 * r] < last:
+                raise ValueError("torchvor.distributed: the ranks' batch vectors, concatenated in rank order, "
+                                 "must be sorted")
+            last = ends[2 * r + 1]
+    return batch
+
+
+def global_box(g: Group, points: torch.Tensor, box, batch: Optional[torch.Tensor]) -> torch.Tensor:
+    """(B, 2, 3) float64: the box of each cloud, the given one or the whole
+    cloud's bounding box (reduced over the ranks)."""
+    clouds = int(g.reduce(torch.tensor([int(batch.max()) + 1 if batch is not None and batch.numel() else 1],
+                                       device=g.device), dist.ReduceOp.MAX)[0])
+    if box is not None:
+        given = as_box(points, box, batch).double()
+        if given.shape[0] == 1 and clouds > 1:
+            given = given.expand(clouds, 2, 3)
+        return given.contiguous()
+    lo = torch.full((clouds, 3), math.inf, dtype=torch.float64, device=g.device)
+    hi = torch.full((clouds, 3), -math.inf, dtype=torch.float64, device=g.device)
+    if points.shape[0]:
+        index = (batch if batch is not None else torch.zeros(points.shape[0], dtype=torch.int64,
+                                                             device=g.device)).unsqueeze(1).expand(-1, 3)
+        lo = lo.scatter_reduce(0, index, points.double(), "amin")
+        hi = hi.scatter_reduce(0, index, points.double(), "amax")
+    lo = g.reduce(lo, dist.ReduceOp.MIN)
+    hi = g.reduce(hi, dist.ReduceOp.MAX)
+    empty = ~torch.isfinite(lo).all(1)
+    lo[empty], hi[empty] = 0.0, 0.0
+    return torch.stack([lo, hi], 1)
+
+
+class Slabs:
+    """The cut: slab s holds the points whose coordinate along `axis` lies in
+    [bounds[s], bounds[s + 1]) (the outer bounds infinite), balanced by count."""
+
+    def __init__(self, g: Group, points: torch.Tensor, box: torch.Tensor):
+        lo, hi = box[:, 0].amin(0), box[:, 1].amax(0)
+        self.axis = int(torch.argmax(hi - lo))
+        a, b = float(lo[self.axis]), float(hi[self.axis])
+        x = points[:, self.axis].double()
+        if b > a:
+            counts = torch.histc(x, bins=BALANCE_BINS, min=a, max=b) if x.numel() else \
+                torch.zeros(BALANCE_BINS, dtype=torch.float64, device=g.device)
+            counts = g.reduce(counts.double(), dist.ReduceOp.SUM)
+            cumulative = torch.cumsum(counts, 0)
+            targets = torch.arange(1, g.size, dtype=torch.float64, device=g.device) * (g.total / g.size)
+            edge = torch.searchsorted(cumulative, targets, right=True).clamp_max(BALANCE_BINS - 1)
+            inner = (a + (edge.double() + 1) * ((b - a) / BALANCE_BINS)).tolist()
+        else:
+            inner = [a] * (g.size - 1)
+        self.bounds = [-math.inf, *inner, math.inf]
+        self.size = g.size
+        # the mean spacing of the densest cloud's box: the first halo's unit
+        volume = (box[:, 1] - box[:, 0]).clamp_min(0).prod(1).max()
+        self.spacing = float((volume / max(g.total, 1)) ** (1.0 / 3.0)) if float(volume) > 0 else \
+            float((hi - lo).max()) / max(g.total, 1)
+
+    def owner(self, coordinate: torch.Tensor) -> torch.Tensor:
+        """(N,) int64: the slab of each coordinate along the axis."""
+        inner = torch.tensor(self.bounds[1:-1], dtype=torch.float64, device=coordinate.device)
+        return torch.searchsorted(inner, coordinate.double().contiguous(), right=True)
+
+    def halo_dest(self, coordinate: torch.Tensor, home: int, widths: List[float]):
+        """(rows, dest): the rows (of points in slab `home`) within widths[s] of
+        another slab s, one entry a (row, s) pair."""
+        rows, dests = [], []
+        x = coordinate.double()
+        for s in range(self.size):
+            if s == home:
+                continue
+            near = (x >= self.bounds[s] - widths[s]) & (x < self.bounds[s + 1] + widths[s])
+            idx = near.nonzero().squeeze(1)
+            rows.append(idx)
+            dests.append(torch.full_like(idx, s))
+        if not rows:
+            empty = torch.zeros(0, dtype=torch.int64, device=coordinate.device)
+            return empty, empty
+        return torch.cat(rows), torch.cat(dests)
+
+    def clearance(self, coordinate: torch.Tensor, slab: int, width: float) -> torch.Tensor:
+        """(N,) float64: the distance of each coordinate (in `slab`) to the
+        edge of its slab widened by `width` (inf on an outer side)."""
+        x = coordinate.double()
+        below = x - (self.bounds[slab] - width)
+        above = (self.bounds[slab + 1] + width) - x
+        return torch.minimum(below, above)
+
+
+class Local:
+    """This rank's slab: its points (with global index, batch and the rank
+    that owns each) and the halo, ordered by global index. `wanted` (N,) bool:
+    the points whose results are asked for (default: all); the others only
+    bound cells (a periodic call's images)."""
+
+    def __init__(self, g: Group, slabs: Slabs, points: torch.Tensor, batch: Optional[torch.Tensor],
+                 wanted: Optional[torch.Tensor] = None):
+        self.g, self.slabs = g, slabs
+        n = points.shape[0]
+        index = torch.arange(g.offset, g.offset + n, dtype=torch.int64, device=g.device)
+        b = batch if batch is not None else torch.zeros(n, dtype=torch.int64, device=g.device)
+        dest = slabs.owner(points[:, slabs.axis])
+        if wanted is None:
+            self.points, self.index, self.batch = g.exchange(dest, [points, index, b])
+            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
+        else:
+            self.points, self.index, self.batch, wanted = g.exchange(dest, [points, index, b, wanted.to(torch.int64)])
+            self.wanted = wanted.bool()
+
+    def cloud(self, width: float):
+        """(points, global index, batch, own): the slab's points and every point
+        of the other slabs within `width` of it (every rank passes the same
+        width), sorted by global index; `own`: the slab's wanted points."""
+        g = self.g
+        rows, dest = self.slabs.halo_dest(self.points[:, self.slabs.axis], g.rank, [width] * g.size)
+        halo = g.exchange(dest, [self.points[rows], self.index[rows], self.batch[rows]])
+        points = torch.cat([self.points, halo[0]])
+        index = torch.cat([self.index, halo[1]])
+        batch = torch.cat([self.batch, halo[2]])
+        own = torch.zeros(index.numel(), dtype=torch.bool, device=g.device)
+        own[: self.index.numel()] = self.wanted
+        order = torch.sort(index).indices
+        return points[order], index[order], batch[order], own[order]
+
+    def move(self, points: torch.Tensor) -> None:
+        """The slab's points moved to `points` (rows of `self.points`); those
+        now in another slab go to its rank (rows stay sorted by global index).
+        Every point is wanted (Lloyd's)."""
+        dest = self.slabs.owner(points[:, self.slabs.axis])
+        if bool(self.g.reduce(torch.tensor([int(bool((dest != self.g.rank).any()))], device=self.g.device),
+                              dist.ReduceOp.MAX)[0]):
+            points, index, batch = self.g.exchange(dest, [points, self.index, self.batch])
+            order = torch.sort(index).indices
+            self.points, self.index, self.batch = points[order], index[order], batch[order]
+            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=self.g.device)
+        else:
+            self.points = points
+
+    def send_edges(self, edges: torch.Tensor, values: torch.Tensor):
+        """Edges (E, 2) of global (neighbour, cell) and their `values` sent to
+        the rank that owns each cell."""
+        return tuple(self.g.exchange(owner_rank(self.g, self.g.counts, edges[:, 1]), [edges, values]))
+
+    def wrap(self, points: torch.Tensor) -> torch.Tensor:
+        """Moved points as they stay (no periodic axis)."""
+        return points
+
+    @property
+    def wanted_index(self) -> torch.Tensor:
+        """The global index of the slab's wanted points, in their order."""
+        return self.index[self.wanted]
+
+    def send_back(self, index: torch.Tensor, *values: torch.Tensor) -> List[torch.Tensor]:
+        """Each of `values`, rows of this slab's points (global `index`), sent to
+        the ranks that own them: this rank's rows, in its input order."""
+        return send_to_owners(self.g, self.g.counts, index, values)
+
+
+def owner_rank(g: Group, counts: List[int], index: torch.Tensor) -> torch.Tensor:
+    """(N,) int64: the rank that owns each global index, the ranks owning
+    `counts` rows in rank order."""
+    starts = torch.tensor([sum(counts[:r]) for r in range(1, g.size)], dtype=torch.int64, device=g.device)
+    return torch.searchsorted(starts, index.contiguous(), right=True)
+
+
+def send_to_owners(g: Group, counts: List[int], index: torch.Tensor, values) -> List[torch.Tensor]:
+    """Each of `values`, rows of global `index` (rows owned by the ranks as
+    `counts` says), sent to their owners: this rank's rows, in its order."""
+    got_index, *got = g.exchange(owner_rank(g, counts, index), [index, *values])
+    rows = got_index - sum(counts[: g.rank])
+    out = []
+    for value, received in zip(values, got):
+        mine = value.new_empty((counts[g.rank], *value.shape[1:]))
+        mine[rows] = received
+        out.append(mine)
+    return out
+
+
+def together(g: Group, fn, *args):
+    """fn(*args) on every rank; if it raises on any, every rank raises (that
+    rank its own error), so that none is left waiting in a collective."""
+    error = None
+    try:
+        result = fn(*args)
+    except Exception as caught:  # noqa: BLE001 - re-raised below, on every rank
+        error, result = caught, None
+    failed = g.reduce(torch.tensor([int(error is not None)], device=g.device), dist.ReduceOp.MAX)
+    if error is not None:
+        raise error
+    if int(failed[0]):
+        raise RuntimeError("torchvor.distributed: the call raised on another rank (that rank names the cause)")
+    return result
+
+
+def check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torch.Tensor,
+                  periodic: Optional[torch.Tensor] = None) -> None:
+    """This rank's points inside their clouds' boxes (as the plain op asks),
+    checked where they are, before they move; along the `periodic` axes
+    ((3,) bool) anywhere."""
+    if points.shape[0] == 0:
+        return
+    if box.shape[0] > 1 and batch is None:
+        raise ValueError("torchvor.distributed.voronoi: a box per cloud needs batch")
+    rows = box[batch] if batch is not None else box[0].expand(points.shape[0], 2, 3)
+    outside = (points < rows[:, 0]) | (points > rows[:, 1])
+    if periodic is not None:
+        outside &= ~periodic
+    if bool(outside.any()):
+        raise ValueError("torchvor.distributed.voronoi: points must lie inside box (lo <= p <= hi)"
+                         + (" along the axes that are not periodic" if periodic is not None else ""))
+
+
+def halo_rounds(g: Group, local: Local, compute, shortfall, max_rounds: int = 8):
+    """Runs `compute(points, batch)` on the slab and a growing halo until
+    `shortfall(result, clearance, rows, width)` is 0 for every row, the last
+    round with the whole cloud; returns (the global index of each point
+    computed, the rows of the slab's own points, the result). `clearance`:
+    each computed point's distance to the halo's edge; the shortfall: how
+    much wider the halo must be for each row that counts (the slab's points
+    `rows`, or the queries), inf: as wide as the cloud."""
+    width = FIRST_HALO_SPACINGS * local.slabs.spacing
+    for round_ in range(max_rounds + 1):
+        if round_ == max_rounds:
+            width = math.inf
+        points, index, batch, own = local.cloud(width)
+        rows = own.nonzero().squeeze(1)
+        clearance = local.slabs.clearance(points[:, local.slabs.axis], g.rank, width)
+
+        def work():
+            result = compute(points, batch)
+            return result, torch.nan_to_num(shortfall(result, clearance, rows, width), nan=math.inf)
+
+        result, short = together(g, work)
+        if width == math.inf or g.size == 1:
+            short = torch.zeros_like(short)  # the whole cloud is there
+        need = float(short.max()) if short.numel() else 0.0
+        wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
+        if wanted == 0.0 or width == math.inf:
+            return index, rows, result
+        width = max(2 * width, width + 1.25 * wanted)  # inf (or NaN: then the whole cloud) when a reach is
+        if not width < math.inf:
+            width = math.inf
+    raise AssertionError("unreachable: the last round holds the whole cloud")
+
+
+def certify_rows(g: Group, local: Local, compute, shortfall, extract, max_rounds: int = 8) -> List[torch.Tensor]:
+    """halo_rounds for results a row of the slab's points each: the first
+    round computes the slab with the first halo, each later one only the rows
+    not yet certified, among the points of a wider halo within 1.25 times the
+    reach they asked for (near_seeds). `compute(points, batch, rows)` may
+    compute the rows' results alone; `extract(result, index, rows)`
+    gives the rows' outputs (tensors, row by row; `index` the global index of
+    each point computed); returns them for every slab point, in
+    `local.points`' order."""
+    width = FIRST_HALO_SPACINGS * local.slabs.spacing
+    outputs: Optional[List[torch.Tensor]] = None
+    pending = reach = None  # the rows still to certify (None: all), and the reach each asks for
+    axis = local.slabs.axis
+    for round_ in range(max_rounds + 1):
+        if round_ == max_rounds:
+            width = math.inf
+        points, index, batch, own = local.cloud(width)
+        rows = own.nonzero().squeeze(1)
+        clearance = local.slabs.clearance(points[:, axis], g.rank, width)
+
+        def work(points=points, index=index, batch=batch, clearance=clearance):
+            if pending is None:
+                seeds = rows
+            else:  # the points within reach of a pending seed, the seeds among them
+                sub, bound = near_seeds(points, batch, rows[pending], reach, axis)
+                seeds = torch.searchsorted(sub, rows[pending])
+                points, index, batch, clearance = points[sub], index[sub], batch[sub], clearance[sub].clone()
+                clearance[seeds] = torch.minimum(clearance[seeds], bound)  # a point left out lies farther
+            result = compute(points, batch, seeds)
+            short = torch.nan_to_num(shortfall(result, clearance, seeds, width), nan=math.inf)
+            if width == math.inf or g.size == 1:
+                short = torch.zeros_like(short)  # the whole cloud is there
+            return short, extract(result, index, seeds), clearance[seeds]
+
+        short, values, seed_clearance = together(g, work)
+        done = short == 0
+        if outputs is None:
+            outputs = [v.new_empty((rows.numel(), *v.shape[1:])) for v in values]
+        at = torch.arange(rows.numel(), device=g.device) if pending is None else pending
+        for out, v in zip(outputs, values):
+            out[at[done]] = v[done]
+        pending, reach = at[~done], 1.25 * (short[~done] + seed_clearance[~done])
+        need = float(short.max()) if short.numel() else 0.0
+        wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
+        if wanted == 0.0:
+            return outputs
+        width = max(2 * width, width + 1.25 * wanted)  # inf (or NaN: then the whole cloud) when a reach is
+        if not width < math.inf:
+            width = math.inf
+    raise AssertionError("unreachable: the last round holds the whole cloud")
+
+
+# near_seeds lists at most this many (seed, point) pairs by a radius search;
+# beyond, it takes the points near the seeds along the cut axis alone.
+NEAR_PAIRS = 1 << 23
+
+
+def near_seeds(points: torch.Tensor, batch: torch.Tensor, seeds: torch.Tensor, reach: torch.Tensor, axis: int):
+    """(rows, bound): the sorted rows of `points` within `reach` of one of the
+    rows `seeds` (seeds included), and for each seed how far a point left out
+    lies at least: every point within the largest reach, by a radius search,
+    where that lists few enough pairs (estimated at the mean density of the
+    points' extent); else the points within each seed's reach along `axis`."""
+    r = float(reach.max()) if reach.numel() else 0.0
+    extent = (points.amax(0) - points.amin(0)).double().clamp_min(1e-300) if points.shape[0] else None
+    if 0.0 < r < math.inf and points.shape[0]:
+        volume = float(extent.prod())
+        density = points.shape[0] / volume if volume > 0.0 else math.inf  # flat: the axis alone
+        if seeds.numel() * density * (4.0 / 3.0) * math.pi * min(r, float(extent.max())) ** 3 <= NEAR_PAIRS:
+            found = _plain_radius(points.detach(), r, points[seeds].detach(), batch=batch, query_batch=batch[seeds])
+            rows = torch.unique(torch.cat([found.edge_index[0], seeds]))
+            return rows, torch.full_like(reach, r)
+    x = points[:, axis].double()
+    return within_any(x, x[seeds], reach).nonzero().squeeze(1), reach
+
+
+def within_any(x: torch.Tensor, centres: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the coordinates `x` within `reach` of one of `centres` (the
+    union of the intervals centre +- reach)."""
+    if centres.numel() == 0:
+        return torch.zeros_like(x, dtype=torch.bool)
+    starts, order = torch.sort(centres - reach)
+    ends = torch.cummax((centres + reach)[order], 0).values
+    at = torch.searchsorted(starts, x.contiguous(), right=True) - 1
+    return (at >= 0) & (x <= ends[at.clamp_min(0)])
+
+
+def cell_shortfall(cells: VoronoiCells, clearance: torch.Tensor) -> torch.Tensor:
+    """(N,) float64 of every computed cell: how far twice its radius (with
+    CERTIFY_SLACK) passes its clearance; inf where the cell failed."""
+    computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
+    reach = 2 * cells.radius.double() * (1 + CERTIFY_SLACK)
+    excess = (reach - clearance).clamp_min(0)
+    return torch.where(computed, torch.nan_to_num(excess, nan=math.inf), torch.full_like(excess, math.inf))
+
+
+def pack_cells(cells: VoronoiCells, rows: torch.Tensor, *more: torch.Tensor):
+    """The fields of cells `rows` as two tensors (and `more` floating columns
+    appended to the first): (R, 6 + ...) of the floating fields, (R, 2) int32
+    of status and neighbors_needed."""
+    floats = torch.cat([cells.volume[rows].unsqueeze(1), cells.centroid[rows], cells.second_moment[rows].unsqueeze(1),
+                        cells.radius[rows].to(cells.volume.dtype).unsqueeze(1), *more], 1)
+    ints = torch.stack([cells.status[rows].to(torch.int32), cells.neighbors_needed[rows]], 1)
+    return floats, ints
+
+
+def unpack_cells(floats: torch.Tensor, ints: torch.Tensor) -> VoronoiCells:
+    return VoronoiCells(floats[:, 0], floats[:, 1:4], floats[:, 4], ints[:, 0].to(torch.int8),
+                        ints[:, 1].contiguous(), floats[:, 5])
