@@ -144,8 +144,37 @@ TV_HD void insert_by_distance(Vec3<T> offset, T nearest2, Vec3<T>* r, T* r2, int
 
 // Where a thread cell keeps its dual triangles: one DualTriangle a slot
 // (16 bytes in float32, 32 in float64), or 12 bytes (CompactTriangles).
+// On the host (TORCHVOR_HOST_PACKS) the slots are columns instead: each
+// coordinate of consecutive slots side by side, so that the packed loops
+// (packed_vertices.h) load a pack of vertices in three vector loads.
+#if defined(TORCHVOR_HOST_PACKS)
 template <typename T, int N, typename Corners = uint32_t>
 struct TriangleSlots {
+  static constexpr bool kColumns = true;
+  T x[N], y[N], z[N];
+  Corners corner[N];
+  Vec3<T> position(int t) const { return {x[t], y[t], z[t]}; }
+  Corners corners(int t) const { return corner[t]; }
+  // Stores a vertex and returns it as it reads back (here: as given).
+  Vec3<T> set(int t, Vec3<T> position, Corners corners) {
+    x[t] = position.x;
+    y[t] = position.y;
+    z[t] = position.z;
+    corner[t] = corners;
+    return position;
+  }
+  void set_corners(int t, Corners corners) { corner[t] = corners; }
+  void copy(int to, int from) {
+    x[to] = x[from];
+    y[to] = y[from];
+    z[to] = z[from];
+    corner[to] = corner[from];
+  }
+};
+#else
+template <typename T, int N, typename Corners = uint32_t>
+struct TriangleSlots {
+  static constexpr bool kColumns = false;
   DualTriangle<T, Corners> slot[N];
   TV_HD Vec3<T> position(int t) const { return slot[t].position; }
   TV_HD Corners corners(int t) const { return slot[t].corners; }
@@ -157,6 +186,7 @@ struct TriangleSlots {
   TV_HD void set_corners(int t, Corners corners) { slot[t].corners = corners; }
   TV_HD void copy(int to, int from) { slot[to] = slot[from]; }
 };
+#endif
 
 // Dual triangles in 12 bytes a slot, for float32 cells of at most 32 planes:
 // each coordinate is rounded to 18 mantissa bits (to nearest, ties to even)
@@ -174,6 +204,7 @@ struct TriangleSlots {
 // fails as for any non-finite vertex).
 template <int N>
 struct CompactTriangles {
+  static constexpr bool kColumns = false;
   static constexpr uint32_t kId = 31u;  // the low 5 bits
   uint32_t word[N][3];                  // x, y, z, each with one corner's plane id (a, b, c)
 

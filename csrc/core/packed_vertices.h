@@ -4,6 +4,7 @@
 // the scalar loops (a thread is already one lane of a vector there).
 #pragma once
 
+#include <cstring>
 #include <type_traits>
 
 #include "cell_moments.h"
@@ -28,6 +29,30 @@ TV_HD int lane_vertex(int t, int count) {
   return t < count ? t : count - 1;
 }
 
+// The vertices [base, base + W) of a cell as a pack, lanes past `count`
+// repeating the last vertex: a whole pack in three vector loads from the
+// host's column slots, else gathered vertex by vertex.
+template <typename T, typename Cell>
+TV_HD Vec3<Pack<T>> vertex_pack(const Cell& cell, int base, int count) {
+  using P = Pack<T>;
+  Vec3<P> v;
+  if constexpr (std::remove_reference<decltype(cell.triangle)>::type::kColumns) {
+    if (base + P::kWidth <= count) {
+      memcpy(&v.x.lanes, cell.triangle.x + base, sizeof(v.x.lanes));
+      memcpy(&v.y.lanes, cell.triangle.y + base, sizeof(v.y.lanes));
+      memcpy(&v.z.lanes, cell.triangle.z + base, sizeof(v.z.lanes));
+      return v;
+    }
+  }
+  for (int i = 0; i < P::kWidth; ++i) {
+    const Vec3<T> vertex = cell.vertex(lane_vertex(base + i, count));
+    v.x.lanes[i] = vertex.x;
+    v.y.lanes[i] = vertex.y;
+    v.z.lanes[i] = vertex.z;
+  }
+  return v;
+}
+
 // ConvexCell::classify: marks in `clipped` (cleared first) the vertices more
 // than `threshold` (< 0) outside plane p; returns whether any is, and the
 // largest |vertex|^2 of the others. The same tests as the scalar loop, and
@@ -44,13 +69,7 @@ TV_HD bool classify_packed(const Cell& cell, const Plane<T>& p, T threshold, Mas
   uint32_t any_clipped = 0u;
   clipped.clear();
   for (int base = 0; base < count; base += W) {
-    Vec3<P> v;
-    for (int i = 0; i < W; ++i) {
-      const Vec3<T> vertex = cell.vertex(lane_vertex(base + i, count));
-      v.x.lanes[i] = vertex.x;
-      v.y.lanes[i] = vertex.y;
-      v.z.lanes[i] = vertex.z;
-    }
+    const Vec3<P> v = vertex_pack<T>(cell, base, count);
     const PackMask<T> valid = {lanes < count - base};
     const PackMask<T> outside = (dot(Vec3<P>{nx, ny, nz}, v) + offset < limit) & valid;
     kept = select(outside | ~valid, kept, max_of(kept, squared_norm(v)));
@@ -75,14 +94,12 @@ TV_HD CellMoments<T, kGeneralPlanes> add_vertices_packed(const Cell& cell, Vec3<
   for (int base = 0; base < count; base += W) {
     Plane<P> planes[3];
     CachedVertex<P> vertex;
+    vertex.position = vertex_pack<T>(cell, base, count);
+    if constexpr (kGeneralPlanes) vertex.position = vertex.position - Vec3<P>{P(origin.x), P(origin.y), P(origin.z)};
     for (int i = 0; i < W; ++i) {
       const int t = lane_vertex(base + i, count);
-      Vec3<T> position = cell.vertex(t);
-      if constexpr (kGeneralPlanes) position = position - origin;
-      vertex.position.x.lanes[i] = position.x;
-      vertex.position.y.lanes[i] = position.y;
-      vertex.position.z.lanes[i] = position.z;
-      vertex.radius2.lanes[i] = squared_norm(position);
+      vertex.radius2.lanes[i] =
+          squared_norm(Vec3<T>{vertex.position.x.lanes[i], vertex.position.y.lanes[i], vertex.position.z.lanes[i]});
       int ids[3];
       cell.vertex_planes(t, ids);
       for (int e = 0; e < 3; ++e) {
