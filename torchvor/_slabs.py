@@ -13,14 +13,12 @@ import torch
 import torch.distributed as dist
 
 from .ops import CellStatus, VoronoiCells, as_box
+from .periodic import CERTIFY_SLACK  # a cell is certified when 2 radius (1 + CERTIFY_SLACK) stays inside the halo
 from .radius import radius as _plain_radius
 
 # The first halo: this many mean spacings (the cube root of the volume a point
 # of the box) on each side of a slab; then what the uncertified cells ask for.
 FIRST_HALO_SPACINGS = 3.0
-# A cell is certified when 2 radius (1 + CERTIFY_SLACK) stays inside the halo
-# (the radius of the computed vertices: see torchvor.periodic).
-CERTIFY_SLACK = 1e-2
 # Histogram bins along the cut axis that place the slab boundaries.
 BALANCE_BINS = 1 << 16
 
