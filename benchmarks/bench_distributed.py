@@ -38,12 +38,16 @@ def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
                             timeout=datetime.timedelta(seconds=900),
                             device_id=device if args.device == "cuda" else None)
     dtype = getattr(torch, args.dtype)
-    points, _ = common.make_points(args.kind, n, seed=args.seed, dtype=dtype, device=torch.device("cpu"),
+    # Made on the rank's own device (blue noise of hundreds of millions of points
+    # takes hours of Lloyd iterations on the CPU), then all but the share freed.
+    points, _ = common.make_points(args.kind, n, seed=args.seed, dtype=dtype, device=device,
                                    cache_dir=args.cache_dir, blue_iters=args.blue_iters)
     if args.spatial:
         points = points[torch.sort(points[:, 0]).indices]
-    share = points[n * rank // ranks: n * (rank + 1) // ranks].to(device)
+    share = points[n * rank // ranks: n * (rank + 1) // ranks].clone()
     del points
+    if args.device == "cuda":
+        torch.cuda.empty_cache()
 
     def call():
         return tvd.voronoi(share, common.UNIT_BOX, on_failure="flag")

@@ -156,12 +156,16 @@ struct CooperativeCell {
     T kept_radius2;  // this lane's largest |vertex|^2 among the vertices the plane keeps
     int removed = 0;
     int boundary = 0;
-    // As the thread cell's far_beside_bisector, within classify's pass.
-    const bool far = far_beside_bisector(r2, radius2);
-    bool could_cut = false;
-    const bool cuts = classify(p, -tolerance * r2, far ? r2 * radius2 : T(0), clipped, kept_radius2, could_cut);
-    if (far && lanes.any(could_cut)) return fail(kIllConditioned);
-    if (!cuts) return true;  // the plane misses the cell
+    // As the thread cell's far_beside_bisector: a pass of its own, as rare
+    // as such planes, so that classify's pass (every plane's) does no more.
+    if (far_beside_bisector(r2, radius2)) {
+      bool could_cut = false;
+      for_own_slots([&](int t) {
+        could_cut = could_cut || rounding_could_cut(dot(p.normal, a.vertex[t].position) + p.offset, r2 * radius2);
+      });
+      if (lanes.any(could_cut)) return fail(kIllConditioned);
+    }
+    if (!classify(p, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
     if (num_planes == MAX_PLANES) compact_planes();
     if (num_planes == MAX_PLANES) return fail(kTooManyPlanes);
     if (!removed_boundary(clipped, removed, boundary)) return fail(kBoundaryError);
@@ -175,7 +179,7 @@ struct CooperativeCell {
     // (from, to, new plane). The radius stays exact: the kept vertices' and
     // the new ones'.
     T largest = kept_radius2;
-    bool finite = true;
+    bool finite = true;  // no NaN or Inf vertex
     bool placed = true;  // no new vertex beyond the cell it cuts (beyond_the_cell)
     for (int e = lane; e < boundary; e += kLanes) {
       const uint32_t edge = a.edge[e];
@@ -187,8 +191,8 @@ struct CooperativeCell {
     }
     if (boundary < removed) fill_holes(clipped, boundary, new_count);
     lanes.sync();
-    if (!lanes.all(finite)) return fail(kBoundaryError);  // degenerate: NaN or Inf vertex
-    if (!lanes.all(placed)) return fail(kIllConditioned);
+    // One vote for both checks; which one failed is asked only then.
+    if (!lanes.all(finite && placed)) return fail(lanes.all(finite) ? kIllConditioned : kBoundaryError);
     radius2 = lanes.max(largest);
     num_triangles = new_count;
     return true;
@@ -248,10 +252,7 @@ struct CooperativeCell {
   // The ballot words of the vertices more than `threshold` (< 0) outside
   // plane p; whether any is; and the largest |vertex|^2 of this lane's
   // vertices that the plane keeps.
-  // could_cut: whether rounding could put a vertex on the other side
-  // (rounding_could_cut; band2 0: never).
-  TV_HD bool classify(const Plane<T>& p, T threshold, T band2, uint32_t (&clipped)[kRounds], T& kept_radius2,
-                      bool& could_cut) const {
+  TV_HD bool classify(const Plane<T>& p, T threshold, uint32_t (&clipped)[kRounds], T& kept_radius2) const {
     uint32_t any_clipped = 0u;
     kept_radius2 = T(0);
     TV_UNROLL
@@ -260,9 +261,7 @@ struct CooperativeCell {
       bool outside = false;
       if (t < num_triangles) {
         const CachedVertex<T> v = a.vertex[t];
-        const T value = dot(p.normal, v.position) + p.offset;
-        outside = value < threshold;
-        could_cut = could_cut || rounding_could_cut(value, band2);
+        outside = dot(p.normal, v.position) + p.offset < threshold;
         kept_radius2 = outside ? kept_radius2 : max_of(kept_radius2, v.radius2);
       }
       clipped[j] = lanes.ballot(outside);
