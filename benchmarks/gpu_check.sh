@@ -116,13 +116,15 @@ for step in "${@:-cudatests}"; do
       grep -q "^fuzz: OK" "$OUT/fuzz.log" || status=1 ;;
     distributed)  # torchvor.distributed over the GPUs there are (NCCL, a GPU a rank): the fuzzer's cases against
                   # the single-process calls (DIST_FUZZ_CASES), then strong and weak scaling (DIST_SIZES) of blue noise
+                  # (DIST_BLUE_ITERS Lloyd iterations, default 30; each rank makes the cloud on its GPU)
       gpus=$(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)
       python3 tests/fuzz_distributed.py --device cuda --size $gpus --seed ${FUZZ_SEED:-1} --cases ${DIST_FUZZ_CASES:-60} \
         --max-n 20000 --quiet 2>&1 | grep -v Warning | tail -20 | tee "$OUT/distributed.log"
       grep -q "ranks: OK" "$OUT/distributed.log" || status=1
-      python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_SIZES:-10M,100M} --ranks 1,$gpus 2>&1 \
-        | grep -v USDT | tee -a "$OUT/distributed.log"
-      python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_WEAK_SIZES:-100M} --ranks 1,$gpus --weak 2>&1 \
+      python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_SIZES:-10M,100M} --ranks 1,$gpus \
+        --blue-iters ${DIST_BLUE_ITERS:-30} 2>&1 | grep -v USDT | tee -a "$OUT/distributed.log"
+      python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_WEAK_SIZES:-100M} --ranks 1,$gpus --weak \
+        --blue-iters ${DIST_BLUE_ITERS:-30} 2>&1 \
         | grep -v USDT | tee -a "$OUT/distributed.log" ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,

@@ -64,7 +64,10 @@ class Group:
     def exchange(self, dest: torch.Tensor, tensors: Sequence[torch.Tensor]) -> List[torch.Tensor]:
         """Each row of `tensors` sent to rank `dest` of that row; returns the rows
         this rank receives, by source rank, each source's rows in their order."""
-        order = torch.sort(dest, stable=True).indices
+        # Sorted by a key as narrow as the rank count allows: a radix sort's
+        # passes go by the key's bytes.
+        key = dest.to(torch.int16 if self.size <= 1 << 15 else torch.int32)
+        order = torch.sort(key, stable=True).indices
         send = torch.bincount(dest, minlength=self.size)
         recv = torch.empty_like(send)
         dist.all_to_all_single(recv, send, group=self.group)
@@ -231,14 +234,18 @@ class Local:
         self.g, self.slabs = g, slabs
         n = points.shape[0]
         index = torch.arange(g.offset, g.offset + n, dtype=torch.int64, device=g.device)
-        b = batch if batch is not None else torch.zeros(n, dtype=torch.int64, device=g.device)
         dest = slabs.owner(points[:, slabs.axis])
-        if wanted is None:
-            self.points, self.index, self.batch = g.exchange(dest, [points, index, b])
-            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
-        else:
-            self.points, self.index, self.batch, wanted = g.exchange(dest, [points, index, b, wanted.to(torch.int64)])
-            self.wanted = wanted.bool()
+        # Without a batch vector, none travels: the slab makes its own zeros.
+        self.batched = batch is not None
+        sent = [points, index] + ([batch] if self.batched else []) + ([wanted.to(torch.int64)] if wanted is not None else [])
+        got = g.exchange(dest, sent)
+        self.points, self.index = got[0], got[1]
+        self.batch = got[2] if self.batched else self._zeros()
+        self.wanted = got[-1].bool() if wanted is not None else \
+            torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
+
+    def _zeros(self) -> torch.Tensor:
+        return torch.zeros(self.index.numel(), dtype=torch.int64, device=self.g.device)
 
     def cloud(self, width: float):
         """(points, global index, batch, own): the slab's points and every point
@@ -252,7 +259,7 @@ class Local:
         batch = torch.cat([self.batch, halo[2]])
         own = torch.zeros(index.numel(), dtype=torch.bool, device=g.device)
         own[: self.index.numel()] = self.wanted
-        order = torch.sort(index).indices
+        order = index_order(g, index)
         return points[order], index[order], batch[order], own[order]
 
     def move(self, points: torch.Tensor) -> None:
@@ -262,9 +269,10 @@ class Local:
         dest = self.slabs.owner(points[:, self.slabs.axis])
         if bool(self.g.reduce(torch.tensor([int(bool((dest != self.g.rank).any()))], device=self.g.device),
                               dist.ReduceOp.MAX)[0]):
-            points, index, batch = self.g.exchange(dest, [points, self.index, self.batch])
-            order = torch.sort(index).indices
-            self.points, self.index, self.batch = points[order], index[order], batch[order]
+            got = self.g.exchange(dest, [points, self.index] + ([self.batch] if self.batched else []))
+            order = index_order(self.g, got[1])
+            self.points, self.index = got[0][order], got[1][order]
+            self.batch = got[2][order] if self.batched else self._zeros()
             self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=self.g.device)
         else:
             self.points = points
@@ -287,6 +295,12 @@ class Local:
         """Each of `values`, rows of this slab's points (global `index`), sent to
         the ranks that own them: this rank's rows, in its input order."""
         return send_to_owners(self.g, self.g.counts, index, values)
+
+
+def index_order(g: Group, index: torch.Tensor) -> torch.Tensor:
+    """The order that sorts distinct global indices, by a 32-bit key where
+    they fit (half the radix passes of the 64-bit one)."""
+    return torch.sort(index.to(torch.int32) if g.total < 1 << 31 else index).indices
 
 
 def owner_rank(g: Group, counts: List[int], index: torch.Tensor) -> torch.Tensor:

@@ -88,6 +88,11 @@ def _slab_cells(g: Group, local: "Local", box_arg, batched: bool, kwargs) -> Vor
     """The cells of this rank's wanted slab points (the plain voronoi's,
     on_failure "flag"), in the order of `local.points`. The halo's cells are
     not computed: its points only bound the slab's."""
+    return unpack_cells(*_slab_rows(g, local, box_arg, batched, kwargs))
+
+
+def _slab_rows(g: Group, local: "Local", box_arg, batched: bool, kwargs):
+    """_slab_cells' outputs as pack_cells packs them (floats, ints)."""
 
     def compute(p, b, rows):
         return _voronoi_rows(p, box_arg, rows, b if batched else None, **kwargs)
@@ -98,7 +103,7 @@ def _slab_cells(g: Group, local: "Local", box_arg, batched: bool, kwargs) -> Vor
     def extract(cells, index, rows):
         return pack_cells(cells, slice(None))
 
-    return unpack_cells(*certify_rows(g, local, compute, shortfall, extract))
+    return certify_rows(g, local, compute, shortfall, extract)
 
 
 def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch.Tensor] = None,
@@ -125,8 +130,8 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
     if axes is not None:
         return _periodic_voronoi(points, box, batch, group, axes, kwargs)
     on_failure, g, points, batch, box_arg, local = _start("voronoi", points, box, batch, group, kwargs)
-    cells = _slab_cells(g, local, box_arg, batch is not None, kwargs)
-    out = unpack_cells(*local.send_back(local.index, *pack_cells(cells, slice(None))))
+    rows = _slab_rows(g, local, box_arg, batch is not None, kwargs)  # packed as they travel
+    out = unpack_cells(*local.send_back(local.index, *rows))
     _report_failures(out, on_failure, "voronoi")
     return out
 
@@ -161,8 +166,8 @@ class _RankAgreement(_periodic.Agreement):
         wanted = torch.zeros(points.shape[0], dtype=torch.bool, device=g.device)
         wanted[rows] = True
         local = Local(g, Slabs(g, points, box.double()), points, batch, wanted)
-        cells = _slab_cells(g, local, box, batch is not None, {"k": k, "memory_budget": memory_budget})
-        every = unpack_cells(*local.send_back(local.wanted_index, *pack_cells(cells, slice(None))))
+        packed = _slab_rows(g, local, box, batch is not None, {"k": k, "memory_budget": memory_budget})
+        every = unpack_cells(*local.send_back(local.wanted_index, *packed))
         return VoronoiCells(*(t[rows] for t in every))
 
 
