@@ -38,8 +38,8 @@ def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
                             timeout=datetime.timedelta(seconds=900),
                             device_id=device if args.device == "cuda" else None)
     dtype = getattr(torch, args.dtype)
-    # Made on the rank's own device (blue noise of hundreds of millions of points
-    # takes hours of Lloyd iterations on the CPU), then all but the share freed.
+    # Made on the rank's own device (the Lloyd iterations of blue noise at hundreds
+    # of millions of points are far too slow on the CPU), then all but the share freed.
     points, _ = common.make_points(args.kind, n, seed=args.seed, dtype=dtype, device=device,
                                    cache_dir=args.cache_dir, blue_iters=args.blue_iters)
     if args.spatial:

@@ -237,7 +237,8 @@ class Local:
         dest = slabs.owner(points[:, slabs.axis])
         # Without a batch vector, none travels: the slab makes its own zeros.
         self.batched = batch is not None
-        sent = [points, index] + ([batch] if self.batched else []) + ([wanted.to(torch.int64)] if wanted is not None else [])
+        sent = [points, index] + ([batch] if self.batched else [])
+        sent += [wanted.to(torch.int64)] if wanted is not None else []
         got = g.exchange(dest, sent)
         self.points, self.index = got[0], got[1]
         self.batch = got[2] if self.batched else self._zeros()
