@@ -82,7 +82,8 @@ TV_HD int32_t center_out(int32_t c, int32_t i) { return c + ((i & 1) ? -((i + 1)
 // A candidate neighbour as one comparable key, ordered by (squared distance,
 // index) so that ties go to the lower index. For float32 the two fit in one
 // uint64 (non-negative float bits sort like unsigned integers): one integer
-// compare per heap step. float64 keeps the pair.
+// compare per heap step. float64 keeps the pair (packed into two words on
+// the host).
 template <typename T> struct HeapKey;
 
 template <> struct HeapKey<float> {
@@ -102,35 +103,47 @@ template <> struct HeapKey<float> {
 };
 
 template <> struct HeapKey<double> {
+#if defined(__CUDA_ARCH__)
   double d;
   int32_t i;
   TV_HD static HeapKey make(double dist2, int32_t index) { return {dist2, index}; }
   TV_HD double dist2() const { return d; }
   TV_HD int32_t index() const { return i; }
-#if defined(__CUDA_ARCH__)
   TV_HD bool operator<(const HeapKey& other) const {
     return d < other.d || (d == other.d && i < other.i);
   }
   TV_HD static HeapKey select(bool when, HeapKey a, HeapKey b) { return when ? a : b; }
 #else
-  // Host: bit operations, not the branches a compiler makes of || and of a
-  // ternary on a 16-byte pair (they mispredict in the heap's sift).
+  // Host: the distance's bits above the index as one 96-bit unsigned
+  // integer (non-negative doubles order as their bits), in two words: one
+  // 128-bit compare where the pair takes several, and selects by masks (host
+  // compilers make mispredicted branches of || and of a ternary on a pair).
+  // The same size and alignment as the device's pair (the scratch's layout).
+  uint64_t low;   // the distance's low 32 bits, then the index
+  uint64_t high;  // the distance's high 32 bits
+  static HeapKey make(double dist2, int32_t index) {
+    uint64_t bits;
+    memcpy(&bits, &dist2, sizeof bits);
+    return {(bits << 32) | uint32_t(index), bits >> 32};
+  }
+  double dist2() const {
+    const uint64_t bits = (high << 32) | (low >> 32);
+    double d;
+    memcpy(&d, &bits, sizeof d);
+    return d;
+  }
+  int32_t index() const { return int32_t(uint32_t(low)); }
   bool operator<(const HeapKey& other) const {
-    return bool(int(d < other.d) | (int(d == other.d) & int(i < other.i)));
+    return ((unsigned __int128)high << 64 | low) < ((unsigned __int128)other.high << 64 | other.low);
   }
   static HeapKey select(bool when, HeapKey a, HeapKey b) {
     const uint64_t mask = uint64_t(0) - uint64_t(when);
-    uint64_t da, db;
-    memcpy(&da, &a.d, sizeof da);
-    memcpy(&db, &b.d, sizeof db);
-    const uint64_t bits = (da & mask) | (db & ~mask);
-    HeapKey out;
-    memcpy(&out.d, &bits, sizeof bits);
-    out.i = int32_t((uint32_t(a.i) & uint32_t(mask)) | (uint32_t(b.i) & ~uint32_t(mask)));
-    return out;
+    return {(a.low & mask) | (b.low & ~mask), (a.high & mask) | (b.high & ~mask)};
   }
 #endif
 };
+static_assert(sizeof(HeapKey<double>) == 16 && alignof(HeapKey<double>) == 8,
+              "the host's and the device's float64 keys must lay out the scratch alike");
 
 // Max-heap of candidate keys: the root is the worst of the k best so far.
 // Four children per node: half the depth of a binary heap, and the children
@@ -231,8 +244,9 @@ struct NeighborHeap {
         // double keys: the distance's bits (non-negative: signed-comparable), then the index
         int64_t distance[kMaxRankedKeys], index[kMaxRankedKeys];
         for (int32_t i = 0; i < size; ++i) {
-          memcpy(&distance[i], &key.data[i].d, sizeof(int64_t));
-          index[i] = key.data[i].i;
+          const double d = key.data[i].dist2();
+          memcpy(&distance[i], &d, sizeof(int64_t));
+          index[i] = key.data[i].index();
         }
         ranks_by_first_of_pairs(distance, index, size, rank);
       }
@@ -279,8 +293,14 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
   if (s == end) return;
   HeapKey<T> worst = heap.key[0];
   for (; s < end; ++s) {
+    const T dist2 = squared_distance(load_vec3(grid.sorted_points + 3 * s), query);
+#if !defined(__CUDA_ARCH__)
+    // Host: most candidates are farther than the worst key; one compare of
+    // distances rules them out before the key's (for float64, a pair's).
+    if (dist2 > worst.dist2()) continue;
+#endif
     const int32_t original = grid.original_index(s);
-    const HeapKey<T> item = candidate(s, original);
+    const HeapKey<T> item = HeapKey<T>::make(dist2, original);
     // The excluded point (the query itself, at distance 0) passes the first test.
     if (item < worst && original != excluded) {
       heap.replace_root(item);

@@ -96,10 +96,9 @@ TV_HD CellMoments<T, kGeneralPlanes> add_vertices_packed(const Cell& cell, Vec3<
     CachedVertex<P> vertex;
     vertex.position = vertex_pack<T>(cell, base, count);
     if constexpr (kGeneralPlanes) vertex.position = vertex.position - Vec3<P>{P(origin.x), P(origin.y), P(origin.z)};
+    vertex.radius2 = squared_norm(vertex.position);
     for (int i = 0; i < W; ++i) {
       const int t = lane_vertex(base + i, count);
-      vertex.radius2.lanes[i] =
-          squared_norm(Vec3<T>{vertex.position.x.lanes[i], vertex.position.y.lanes[i], vertex.position.z.lanes[i]});
       int ids[3];
       cell.vertex_planes(t, ids);
       for (int e = 0; e < 3; ++e) {
