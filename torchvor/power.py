@@ -18,6 +18,7 @@ as the Jacobian and conjugate gradients in torch.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple, Optional, Tuple
 
 import torch
@@ -196,7 +197,7 @@ def _lists(points, batch, chunk_rows, k, cached: Optional[torch.Tensor] = None):
     """The k nearest points of each row's point (itself among them), -1 padded:
     the first k columns of `cached` (every row's list, longer) where it holds them."""
     if cached is not None and cached.shape[1] >= k:
-        return cached[chunk_rows, :k]
+        return cached[chunk_rows, :k].long()
     if batch is None:
         return _knn(points, k, points[chunk_rows], exclude_self=False).idx
     # knn takes queries sorted by cloud; retried rows come in any order
@@ -205,13 +206,18 @@ def _lists(points, batch, chunk_rows, k, cached: Optional[torch.Tensor] = None):
     return torch.empty_like(found).index_copy_(0, by_cloud, found)
 
 
+# Every point's list is kept (every_list) while it fits in this many memory budgets.
+LIST_BUDGETS = 4
+
+
 def every_list(points, batch, k: int, memory_budget: int) -> Optional[torch.Tensor]:
-    """(N, k) int64: every point's k nearest (itself among them), for calls
-    on the same points (power_weights' iterations); None above the memory budget."""
-    if points.shape[0] * k * 8 > memory_budget:
+    """(N, k) int32: every point's k nearest (itself among them), for calls
+    on the same points (power_weights' iterations); None past LIST_BUDGETS
+    memory budgets."""
+    if points.shape[0] * k * 4 > LIST_BUDGETS * memory_budget:
         return None
     rows = torch.arange(points.shape[0], device=points.device)
-    return torch.cat([_lists(points, batch, part, k) for part in _chunks(rows, k, memory_budget)])
+    return torch.cat([_lists(points, batch, part, k).int() for part in _chunks(rows, k, memory_budget)])
 
 
 def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
@@ -514,16 +520,35 @@ class PowerWeights(NamedTuple):
     cells: VoronoiCells
 
 
-def _laplacian_apply(edge_index, coefficient, x):
-    """(J x)_i = sum over faces (j, i) of c_ij (x_i - x_j): the Jacobian of the
-    volumes in the weights (d V_i / d w_j = -c_ij, c_ij = a_ij / (2 |x_i - x_j|))."""
-    j, i = edge_index
-    return torch.zeros_like(x).index_add(0, i, coefficient * (x[i] - x[j]))
+class _Jacobian(NamedTuple):
+    """The volumes' Jacobian in the weights, J x = diagonal * x - off x
+    (d V_i / d w_j = -c_ij, c_ij = a_ij / (2 |x_i - x_j|), for each face
+    (j, i); rows summing to zero): ``off`` the (N, N) CSR matrix of the c_ij,
+    ``diagonal`` (N,) its row sums. One sparse product a conjugate-gradient
+    iteration (gathers and a scatter of every face's term cost several)."""
+    off: torch.Tensor
+    diagonal: torch.Tensor
+
+    @staticmethod
+    def of(n: int, edge_index: torch.Tensor, coefficient: torch.Tensor) -> "_Jacobian":
+        j, i = edge_index
+        order = torch.argsort(i * n + j)
+        rows, columns, values = i[order], j[order], coefficient[order]
+        row_start = torch.zeros(n + 1, dtype=torch.int64, device=values.device)
+        row_start[1:] = torch.bincount(rows, minlength=n).cumsum(0)
+        with warnings.catch_warnings():  # torch's notices that sparse CSR is in beta, unchecked
+            warnings.filterwarnings("ignore", message="Sparse (CSR tensor support|invariant checks)")
+            off = torch.sparse_csr_tensor(row_start, columns, values, (n, n))
+        return _Jacobian(off, torch.zeros(n, dtype=values.dtype, device=values.device).index_add(0, rows, values))
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        return self.diagonal * x - self.off @ x
 
 
-def _conjugate_gradient(edge_index, coefficient, diagonal, rhs, rtol: float, max_iters: int):
+def _conjugate_gradient(jacobian: _Jacobian, rhs, rtol: float, max_iters: int):
     """J x = rhs (sum of rhs 0, J a graph Laplacian: x of mean 0) by CG with
     the Jacobi preconditioner, to |r| <= rtol |rhs|."""
+    diagonal = jacobian.diagonal
     inverse = torch.where(diagonal > 0, 1.0 / diagonal, torch.zeros_like(diagonal))
     x = torch.zeros_like(rhs)
     r = rhs - rhs.mean()
@@ -534,7 +559,7 @@ def _conjugate_gradient(edge_index, coefficient, diagonal, rhs, rtol: float, max
     for _ in range(max_iters):
         if float(r.norm()) <= stop:
             break
-        q = _laplacian_apply(edge_index, coefficient, p)
+        q = jacobian.apply(p)
         curvature = torch.dot(p, q)
         if not float(curvature) > 0:  # p in J's null space (rounding): no further descent
             break
@@ -548,14 +573,14 @@ def _conjugate_gradient(edge_index, coefficient, diagonal, rhs, rtol: float, max
     return x - x.mean()
 
 
-def _jacobian(n: int, found, work: torch.Tensor):
-    """(edge_index, c) of the volumes' Jacobian in the weights (_laplacian_apply)
-    from evaluate's faces: PowerFaces, or a periodic call's (edge_index, c)."""
+def _jacobian(n: int, found, work: torch.Tensor) -> _Jacobian:
+    """The volumes' Jacobian in the weights from evaluate's faces: PowerFaces,
+    or a periodic call's (edge_index, c)."""
     if not isinstance(found, PowerFaces):
-        return found
+        return _Jacobian.of(n, *found)
     edge_index, area, _centroid, _walls = graph_of_faces(n, found, torch.float64)
     j, i = edge_index
-    return edge_index, area / (2 * (work[i] - work[j]).norm(dim=1))
+    return _Jacobian.of(n, edge_index, area / (2 * (work[i] - work[j]).norm(dim=1)))
 
 
 def _periodic_faces(graph, work: torch.Tensor, period: torch.Tensor):
@@ -601,7 +626,9 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
             1e-6).
         k: neighbours fetched per cell in the first pass (as :func:`voronoi`).
         progress: print each iteration's error and step.
-        memory_budget: as :func:`torchvor.voronoi`.
+        memory_budget: as :func:`torchvor.voronoi`; every point's neighbour
+            list (int32) is also kept between iterations while it fits in 4
+            budgets.
         weights: (N,) the weights to start from (default zeros: the Voronoi
             diagram), e.g. the previous solution of points that moved a little;
             halved towards zero while it empties a cell.
@@ -617,7 +644,6 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         TypeError: mismatched dtypes.
         RuntimeError: a cell that could not be computed.
     """
-    import warnings
 
     from . import periodic as _periodic
     from .ops import _box_for_call, _check_points, _check_tensor
@@ -704,11 +730,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     iterations = 0
     while error > tol and iterations < max_iters:
         iterations += 1
-        edge_index, coefficient = _jacobian(n, faces, work)
-        i = edge_index[1]
-        diagonal = torch.zeros(n, dtype=torch.float64, device=points.device).index_add(0, i, coefficient)
         # inexact Newton: the step's residual need only fall with the error
-        step = _conjugate_gradient(edge_index, coefficient, diagonal, target - volume, min(1e-2, 0.1 * error),
+        step = _conjugate_gradient(_jacobian(n, faces, work), target - volume, min(1e-2, 0.1 * error),
                                    10 * n + 100)
         worst = float((volume - target).abs().max())
         tau = 1.0
