@@ -25,18 +25,20 @@ def main():
     parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
     parser.add_argument("--tol", type=float, default=1e-6, help="power_weights' relative volume tolerance")
     parser.add_argument("--profile", action="store_true",
-                        help="profile one power voronoi call at the largest size of each kind")
+                        help="profile one power voronoi call and one power_weights call at the largest size of each kind")
     args = parser.parse_args()
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000]
     notes = [f"points in the unit cube, {args.dtype}; power_weights to tol={args.tol:g} with equal volumes, "
-             f"timed once; voronoi: median of {args.repeats} runs after {args.warmup} warm-up run(s)."]
+             f"timed once after a warm-up call on a hundredth of the points; voronoi: median of {args.repeats} runs after {args.warmup} warm-up run(s)."]
     rows = []
     for kind in args.kinds.split(","):
         for n in sizes:
             points, _ = common.make_points(kind, n, seed=args.seed, dtype=dtype, device=device,
                                            cache_dir=args.cache_dir, blue_iters=args.blue_iters)
             n = points.shape[0]
+            if args.warmup:  # the kernels' first launches, cuSPARSE's handle: on a share of the points
+                torchvor.power_weights(points[: max(1, n // 100)], UNIT, tol=args.tol)
             common.synchronize(device)
             start = time.perf_counter()
             solved = torchvor.power_weights(points, UNIT, tol=args.tol)
@@ -47,8 +49,9 @@ def main():
             power = common.time_fn(lambda: torchvor.voronoi(points, UNIT, weights=weights), device, args.warmup,
                                    args.repeats)
             if args.profile and n >= 0.99 * max(sizes):
-                common.profile_calls([("power voronoi", lambda: torchvor.voronoi(points, UNIT, weights=weights))],
-                                     device, f"{kind} n={n}", rows=14)
+                common.profile_calls([("power voronoi", lambda: torchvor.voronoi(points, UNIT, weights=weights)),
+                                      ("power_weights", lambda: torchvor.power_weights(points, UNIT, tol=args.tol))],
+                                     device, f"{kind} n={n}", rows=20)
             empty = int((torchvor.voronoi(points, UNIT, weights=weights).status == torchvor.CellStatus.EMPTY).sum())
             common.log(f"{kind} n={n}: power_weights {common.fmt_s(solve_s)} ({solved.iterations} iterations, "
                        f"error {solved.error:.2e}); voronoi {common.fmt_s(plain)}, power {common.fmt_s(power)}, "

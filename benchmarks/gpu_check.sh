@@ -62,13 +62,15 @@ status=0
 for step in "${@:-cudatests}"; do
   case "$step" in
     tests) python3 -m pytest -q -p no:cacheprovider tests 2>&1 | tee "$OUT/tests.log" | tail -15 || status=1 ;;
-    cudatests)  # CUDA_TESTS_K narrows them (a pytest -k expression, and-ed with "cuda"); with several GPUs
-                # visible, one pytest a GPU, each an interleaved share of the tests (tests/conftest.py's --shard)
+    cudatests)  # CUDA_TESTS_K narrows them (a pytest -k expression, and-ed with "cuda"); CUDA_TEST_SHARDS
+                # pytests (default one a GPU visible), each an interleaved share of the tests (tests/conftest.py's
+                # --shard), spread over the GPUs
       gpus=$(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)
       [ -z "${CUDA_VISIBLE_DEVICES:-}" ] || gpus=$(echo "$CUDA_VISIBLE_DEVICES" | tr ',' '\n' | wc -l)
       visible=(${CUDA_VISIBLE_DEVICES:+${CUDA_VISIBLE_DEVICES//,/ }}); [ ${#visible[@]} -gt 0 ] || visible=($(seq 0 $((gpus - 1))))
-      for shard in $(seq 0 $((gpus - 1))); do
-        CUDA_VISIBLE_DEVICES=${visible[$shard]} python3 -m pytest -q -p no:cacheprovider --shard $shard/$gpus \
+      shards=${CUDA_TEST_SHARDS:-$gpus}
+      for shard in $(seq 0 $((shards - 1))); do
+        CUDA_VISIBLE_DEVICES=${visible[$((shard % gpus))]} python3 -m pytest -q -p no:cacheprovider --shard $shard/$shards \
           -k "cuda${CUDA_TESTS_K:+ and ($CUDA_TESTS_K)}" tests > "$OUT/cudatests.$shard.log" 2>&1 &
       done
       wait
@@ -87,8 +89,8 @@ for step in "${@:-cudatests}"; do
         python3 benchmarks/bench_periodic.py --device cuda --sizes 1M,10M --repeats 3 --dtype $dtype $( [ $dtype = float32 ] && echo --profile) 2>&1 | tee -a "$OUT/bench_periodic.log"
       done ;;
     power)  # power_weights to 1e-6, then the power diagram against plain voronoi (POWER_SIZES, default 1M,10M,
-            # blue and white); with BASELINE, the baseline's too, once it is built
-      python3 benchmarks/bench_power.py --device cuda --sizes ${POWER_SIZES:-1M,10M} --repeats 3 2>&1 | tee "$OUT/bench_power.log"
+            # blue and white; POWER_ARGS more options, e.g. --profile); with BASELINE, the baseline's too, once it is built
+      python3 benchmarks/bench_power.py --device cuda --sizes ${POWER_SIZES:-1M,10M} --repeats 3 ${POWER_ARGS:-} 2>&1 | tee "$OUT/bench_power.log"
       if [ -n "${BASELINE:-}" ]; then
         wait
         (cd /tmp && PYTHONPATH="$BASELINE" python3 "$REPO/benchmarks/bench_power.py" --device cuda \
