@@ -245,6 +245,17 @@ def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, 
         return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists, rows, radius_hint)
 
 
+def _needed_quantile(needed: torch.Tensor, q: float) -> int:
+    """The smallest neighbour count that a share q of the cells needed no
+    more than, from the counts' histogram (torch.quantile refuses past 2^24
+    values)."""
+    if needed.numel() == 0:
+        return 0
+    covered = torch.bincount(needed.long().clamp_min(0)).cumsum(0)
+    share = torch.tensor([math.ceil(q * needed.numel())], dtype=covered.dtype, device=covered.device)
+    return int(torch.searchsorted(covered, share))
+
+
 def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> torch.Tensor:
     """The rows sorted by cloud, then by the cell of a grid of about 4 points a
     cell over their box: nearby cells run side by side and read nearby
@@ -336,7 +347,7 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
         pilot = order[:: order.numel() // PILOT_CELLS]
         row_k[pilot] = min(FIRST_K, whole)
         run(pilot)
-        first_k = min(max(int(torch.quantile(needed[pilot].double(), 0.98)) + 2, 8), whole)
+        first_k = min(max(_needed_quantile(needed[pilot], 0.98) + 2, 8), whole)
         done = torch.zeros(n, dtype=torch.bool, device=device)
         done[pilot] = True
         order = order[~done[order]]
@@ -695,16 +706,17 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
             cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists,
                                        radius_hint=hint)
             hint = cells.radius
-            longest = min(int(cells.neighbors_needed.max()) + 1, n + 1)
-            if lists is None or lists.shape[1] < longest:
-                lists = every_list(work, None, min(longest * 5 // 4 + 8, n + 1), memory_budget)
+            # lists as long as 99% of the cells needed (and a quarter more): the longest search their own
+            wanted = min(_needed_quantile(cells.neighbors_needed, 0.99) + 1, n + 1)
+            if lists is None or lists.shape[1] < wanted:
+                lists = every_list(work, None, min(wanted * 5 // 4 + 8, n + 1), memory_budget)
         elif faces:
             graph = _periodic.voronoi_graph(work, pbox, None, first_k, memory_budget, w)
             cells, found = graph[0], _periodic_faces(graph, work, pbox.period[0])
         else:
             cells, found = _periodic.voronoi(work, pbox, None, first_k, memory_budget, weights=w), None
         if k is None:
-            first_k = int(torch.quantile(cells.neighbors_needed.double(), 0.98)) + 2
+            first_k = _needed_quantile(cells.neighbors_needed, 0.98) + 2
         code = cells.status
         failed = (code != int(CellStatus.SUCCESS)) & (code != _EMPTY)
         if bool(failed.any()):
