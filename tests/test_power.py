@@ -4,6 +4,7 @@ power bisectors (oracles.voronoi_cell_oracle with weights)."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -333,3 +334,44 @@ def test_lloyd_with_volumes_is_power_lloyd(device):
         torchvor.lloyd(points, BOX, volumes=volumes, batch=torch.zeros(200, dtype=torch.int64, device=device))
     with pytest.raises(ValueError, match="does not take callback"):
         torchvor.lloyd(points, BOX, volumes=volumes, callback=lambda *_: None)
+
+
+def test_power_weights_warn_of_nothing(device, gen):
+    """No notice of torch's (the sparse CSR Jacobian's beta status) reaches the caller."""
+    points = _cloud(300, gen, torch.float64, device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = torchvor.power_weights(points, BOX, tol=1e-8)
+    assert result.error <= 1e-8
+
+
+def test_jacobian_is_the_laplacian_of_the_faces(device, gen):
+    """(J x)_i = sum over faces (j, i) of c_ij (x_i - x_j), repeated pairs included
+    (a periodic cell can meet two images of one neighbour)."""
+    from torchvor.power import _Jacobian
+
+    n, faces = 50, 400
+    j = torch.randint(0, n, (faces,), generator=gen)
+    i = torch.randint(0, n, (faces,), generator=gen)
+    c = torch.rand(faces, generator=gen, dtype=torch.float64)
+    x = torch.randn(n, generator=gen, dtype=torch.float64)
+    expected = torch.zeros(n, dtype=torch.float64)
+    for e in range(faces):
+        expected[i[e]] += c[e] * (x[i[e]] - x[j[e]])
+    jacobian = _Jacobian.of(n, torch.stack([j, i]).to(device), c.to(device))
+    torch.testing.assert_close(jacobian.apply(x.to(device)).cpu(), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_needed_quantile_past_torch_quantile_limit():
+    """The smallest count that a share q of the cells needed no more than, for any number of cells."""
+    from torchvor.power import _needed_quantile
+
+    gen = torch.Generator().manual_seed(5)
+    needed = torch.randint(3, 300, (1001,), generator=gen, dtype=torch.int32)
+    ordered = torch.sort(needed).values
+    for q in (0.0, 0.5, 0.98, 0.99, 1.0):
+        assert _needed_quantile(needed, q) == int(ordered[max(math.ceil(q * needed.numel()), 1) - 1])
+    assert _needed_quantile(needed[:0], 0.98) == 0
+    many = torch.full(((1 << 24) + 5,), 7, dtype=torch.int32)
+    many[-100:] = 40
+    assert _needed_quantile(many, 0.98) == 7 and _needed_quantile(many, 1.0) == 40

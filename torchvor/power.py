@@ -252,7 +252,7 @@ def _needed_quantile(needed: torch.Tensor, q: float) -> int:
     if needed.numel() == 0:
         return 0
     covered = torch.bincount(needed.long().clamp_min(0)).cumsum(0)
-    share = torch.tensor([math.ceil(q * needed.numel())], dtype=covered.dtype, device=covered.device)
+    share = torch.tensor([max(math.ceil(q * needed.numel()), 1)], dtype=covered.dtype, device=covered.device)
     return int(torch.searchsorted(covered, share))
 
 
