@@ -25,12 +25,14 @@ def main():
     parser.add_argument("--kinds", default="blue,white", help="comma-separated: blue, white, perturbed")
     parser.add_argument("--tol", type=float, default=1e-6, help="power_weights' relative volume tolerance")
     parser.add_argument("--profile", action="store_true",
-                        help="profile one power voronoi call and one power_weights call at the largest size of each kind")
+                        help="profile one power voronoi call and one power_weights call at the largest size of "
+                             "each kind")
     args = parser.parse_args()
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000]
     notes = [f"points in the unit cube, {args.dtype}; power_weights to tol={args.tol:g} with equal volumes, "
-             f"timed once after a warm-up call on a hundredth of the points; voronoi: median of {args.repeats} runs after {args.warmup} warm-up run(s)."]
+             f"timed once after a warm-up call on a hundredth of the points; voronoi: median of {args.repeats} runs "
+             f"after {args.warmup} warm-up run(s)."]
     rows = []
     for kind in args.kinds.split(","):
         for n in sizes:
