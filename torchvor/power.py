@@ -227,7 +227,7 @@ def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
 
 def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
                 k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
-                faces: bool = False, lists: Optional[torch.Tensor] = None,
+                faces=False, lists: Optional[torch.Tensor] = None,
                 rows: Optional[torch.Tensor] = None,
                 radius_hint: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
     """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
@@ -239,7 +239,9 @@ def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, 
     little), for the first reach of their weight bounds (_WeightBounds).
 
     Returns :class:`VoronoiCells` (N,) (status EMPTY for an empty cell) and,
-    with ``faces``, every computed cell's :class:`PowerFaces`. Not differentiable.
+    with ``faces``, every computed cell's :class:`PowerFaces`; with ``faces =
+    "later"``, a function of ``lists`` that computes them (a second pass over
+    the cells, skipped where they turn out not to be needed). Not differentiable.
     """
     with torch.no_grad():
         return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists, rows, radius_hint)
@@ -358,7 +360,13 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
     cells = VoronoiCells(volume, centroid, second, status, needed, radius)
     if not faces:
         return cells, None
-    return cells, _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget, cached)
+
+    def faces_of_the_cells(lists: Optional[torch.Tensor] = None) -> PowerFaces:
+        """The cells' faces, their lists sliced from `lists` (as `cached`) where it holds them."""
+        with torch.no_grad():
+            return _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget, lists)
+
+    return cells, faces_of_the_cells if faces == "later" else faces_of_the_cells(cached)
 
 
 def _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget,
@@ -700,11 +708,13 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     first_k = k  # then what 98% of the last cells needed (plus 2): no pilot
 
     def evaluate(w, faces):
-        """(cells, faces for _jacobian or None, volumes): the power diagram of weights w."""
+        """(cells, faces for _jacobian (or the function of the lists that computes them) or None,
+        volumes): the power diagram of weights w."""
         nonlocal lists, first_k, hint
         if pbox is None:
-            cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces, lists=lists,
-                                       radius_hint=hint)
+            # faces only for the Jacobian of a step taken and not the last (found(lists))
+            cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces and "later",
+                                       lists=lists, radius_hint=hint)
             hint = cells.radius
             # lists as long as 99% of the cells needed (and a quarter more): the longest search their own
             wanted = min(_needed_quantile(cells.neighbors_needed, 0.99) + 1, n + 1)
@@ -742,6 +752,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     iterations = 0
     while error > tol and iterations < max_iters:
         iterations += 1
+        if callable(faces):
+            faces = faces(lists)
         # inexact Newton: the step's residual need only fall with the error
         step = _conjugate_gradient(_jacobian(n, faces, work), target - volume, min(1e-2, 0.1 * error),
                                    10 * n + 100)
