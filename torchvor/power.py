@@ -663,7 +663,6 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         TypeError: mismatched dtypes.
         RuntimeError: a cell that could not be computed.
     """
-
     from . import periodic as _periodic
     from .ops import _box_for_call, _check_points, _check_tensor
 
