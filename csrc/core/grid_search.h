@@ -103,7 +103,7 @@ template <> struct HeapKey<float> {
 };
 
 template <> struct HeapKey<double> {
-#if defined(__CUDA_ARCH__)
+#if defined(__CUDA_ARCH__) || !defined(__SIZEOF_INT128__)
   double d;
   int32_t i;
   TV_HD static HeapKey make(double dist2, int32_t index) { return {dist2, index}; }
