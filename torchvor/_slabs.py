@@ -61,24 +61,35 @@ class Group:
         dist.all_reduce(out, op=op, group=self.group)
         return out
 
-    def exchange(self, dest: torch.Tensor, tensors: Sequence[torch.Tensor]) -> List[torch.Tensor]:
-        """Each row of `tensors` sent to rank `dest` of that row; returns the rows
-        this rank receives, by source rank, each source's rows in their order."""
-        # Sorted by a key as narrow as the rank count allows: a radix sort's
-        # passes go by the key's bytes.
-        key = dest.to(torch.int16 if self.size <= 1 << 15 else torch.int32)
-        order = torch.sort(key, stable=True).indices
+    def grouping(self, dest: torch.Tensor) -> torch.Tensor:
+        """The stable order that groups rows by `dest`, sorted by a key as
+        narrow as the rank count allows (a radix sort's passes go by its bytes)."""
+        return torch.sort(dest.to(torch.int16 if self.size <= 1 << 15 else torch.int32), stable=True).indices
+
+    def splits(self, dest: torch.Tensor):
+        """(send, receive): how many rows this rank sends to each rank, by
+        `dest`, and receives from each."""
         send = torch.bincount(dest, minlength=self.size)
         recv = torch.empty_like(send)
         dist.all_to_all_single(recv, send, group=self.group)
-        send_splits, recv_splits = send.tolist(), recv.tolist()
-        out = []
-        for tensor in tensors:
-            rows = tensor[order].contiguous()
-            received = rows.new_empty((sum(recv_splits), *rows.shape[1:]))
-            dist.all_to_all_single(received, rows, recv_splits, send_splits, group=self.group)
-            out.append(received)
-        return out
+        return send.tolist(), recv.tolist()
+
+    def exchange(self, dest: torch.Tensor, tensors: Sequence[torch.Tensor],
+                 grouped: bool = False) -> List[torch.Tensor]:
+        """Each row of `tensors` sent to rank `dest` of that row; returns the rows
+        this rank receives, by source rank, each source's rows in their order.
+        `grouped`: `dest` is already non-decreasing (the rows go as they are)."""
+        order = None if grouped else self.grouping(dest)
+        send, recv = self.splits(dest)
+        return [self.all_to_all(t if order is None else t[order], send, recv) for t in tensors]
+
+    def all_to_all(self, rows: torch.Tensor, send: List[int], recv: List[int]) -> torch.Tensor:
+        """`rows`, grouped by destination, send[r] of them to rank r; returns
+        the recv[r] rows from each rank r, in rank order."""
+        rows = rows.contiguous()
+        received = rows.new_empty((sum(recv), *rows.shape[1:]))
+        dist.all_to_all_single(received, rows, recv, send, group=self.group)
+        return received
 
 
 def check_input(points: torch.Tensor, batch: Optional[torch.Tensor], caller: str) -> Optional[str]:
@@ -87,8 +98,8 @@ def check_input(points: torch.Tensor, batch: Optional[torch.Tensor], caller: str
         return f"points must be a tensor of shape (N, 3), got {getattr(points, 'shape', type(points))}"
     if points.dtype not in (torch.float32, torch.float64):
         return f"points must be float32 or float64, got {points.dtype}"
-    if not bool(torch.isfinite(points).all()):
-        return "points contain NaN or Inf"
+    if points.numel() and not bool(torch.isfinite(torch.stack(torch.aminmax(points, dim=0))).all()):
+        return "points contain NaN or Inf"  # min and max are NaN or infinite where a coordinate is
     if batch is not None:
         if not isinstance(batch, torch.Tensor) or batch.shape != (points.shape[0],) or batch.dtype != torch.int64:
             return "batch must be an int64 tensor of shape (N,)"
@@ -174,7 +185,7 @@ class Slabs:
         lo, hi = box[:, 0].amin(0), box[:, 1].amax(0)
         self.axis = int(torch.argmax(hi - lo))
         a, b = float(lo[self.axis]), float(hi[self.axis])
-        x = points[:, self.axis].double()
+        x = points[:, self.axis]  # its dtype: the balance needs no exact edges
         if b > a:
             counts = torch.histc(x, bins=BALANCE_BINS, min=a, max=b) if x.numel() else \
                 torch.zeros(BALANCE_BINS, dtype=torch.float64, device=g.device)
@@ -227,54 +238,68 @@ class Local:
     """This rank's slab: its points (with global index, batch and the rank
     that owns each) and the halo, ordered by global index. `wanted` (N,) bool:
     the points whose results are asked for (default: all); the others only
-    bound cells (a periodic call's images)."""
+    bound cells (a periodic call's images).
+
+    The slab's rows stay sorted by global index with no sort of the whole
+    slab: the first exchange delivers each rank's own points in their order,
+    ranks in order; later, the few rows that arrive (a halo, the points a
+    Lloyd step moves across a boundary) are sorted and merged in. `batch` is
+    None without a batch vector."""
 
     def __init__(self, g: Group, slabs: Slabs, points: torch.Tensor, batch: Optional[torch.Tensor],
                  wanted: Optional[torch.Tensor] = None):
         self.g, self.slabs = g, slabs
-        n = points.shape[0]
-        index = torch.arange(g.offset, g.offset + n, dtype=torch.int64, device=g.device)
         dest = slabs.owner(points[:, slabs.axis])
-        # Without a batch vector, none travels: the slab makes its own zeros.
+        # How the rows came: send_home returns them the same way.
+        self._home = g.grouping(dest)
+        self._home_splits = g.splits(dest)
+        narrow = torch.int32 if g.total < 1 << 31 else torch.int64  # the index travels as narrow as it fits
         self.batched = batch is not None
-        sent = [points, index] + ([batch] if self.batched else [])
-        sent += [wanted.to(torch.int64)] if wanted is not None else []
-        got = g.exchange(dest, sent)
-        self.points, self.index = got[0], got[1]
-        self.batch = got[2] if self.batched else self._zeros()
+        sent = [points[self._home], (self._home + g.offset).to(narrow)]  # rows in the order they go
+        sent += [batch[self._home]] if self.batched else []
+        sent += [wanted[self._home].to(torch.uint8)] if wanted is not None else []
+        got = [g.all_to_all(t, *self._home_splits) for t in sent]
+        self.points, self.index = got[0], got[1].long()
+        self.batch = got[2] if self.batched else None
+        self.all_wanted = wanted is None
         self.wanted = got[-1].bool() if wanted is not None else \
             torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
 
-    def _zeros(self) -> torch.Tensor:
-        return torch.zeros(self.index.numel(), dtype=torch.int64, device=self.g.device)
-
     def cloud(self, width: float):
-        """(points, global index, batch, own): the slab's points and every point
-        of the other slabs within `width` of it (every rank passes the same
-        width), sorted by global index; `own`: the slab's wanted points."""
+        """(points, global index, batch, rows): the slab's points and every
+        point of the other slabs within `width` of it (every rank passes the
+        same width), sorted by global index (batch None without a batch
+        vector); `rows` (sorted): where the slab's wanted points are."""
         g = self.g
         rows, dest = self.slabs.halo_dest(self.points[:, self.slabs.axis], g.rank, [width] * g.size)
-        halo = g.exchange(dest, [self.points[rows], self.index[rows], self.batch[rows]])
-        points = torch.cat([self.points, halo[0]])
-        index = torch.cat([self.index, halo[1]])
-        batch = torch.cat([self.batch, halo[2]])
-        own = torch.zeros(index.numel(), dtype=torch.bool, device=g.device)
-        own[: self.index.numel()] = self.wanted
-        order = index_order(g, index)
-        return points[order], index[order], batch[order], own[order]
+        halo = g.exchange(dest, [self.points[rows], self.index[rows]] + ([self.batch[rows]] if self.batched else []))
+        order = index_order(g, halo[1])
+        halo = [t[order] for t in halo]
+        at = merged_positions(self.index, halo[1])
+        points, index = merged(*at, self.points, halo[0]), merged(*at, self.index, halo[1])
+        rows = at[0] if self.all_wanted else at[0][self.wanted]
+        return points, index, merged(*at, self.batch, halo[2]) if self.batched else None, rows
 
     def move(self, points: torch.Tensor) -> None:
         """The slab's points moved to `points` (rows of `self.points`); those
         now in another slab go to its rank (rows stay sorted by global index).
         Every point is wanted (Lloyd's)."""
+        g = self.g
         dest = self.slabs.owner(points[:, self.slabs.axis])
-        if bool(self.g.reduce(torch.tensor([int(bool((dest != self.g.rank).any()))], device=self.g.device),
-                              dist.ReduceOp.MAX)[0]):
-            got = self.g.exchange(dest, [points, self.index] + ([self.batch] if self.batched else []))
-            order = index_order(self.g, got[1])
-            self.points, self.index = got[0][order], got[1][order]
-            self.batch = got[2][order] if self.batched else self._zeros()
-            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=self.g.device)
+        leave = dest != g.rank
+        if bool(g.reduce(torch.tensor([int(bool(leave.any()))], device=g.device), dist.ReduceOp.MAX)[0]):
+            stay = ~leave
+            columns = [points, self.index] + ([self.batch] if self.batched else [])
+            got = g.exchange(dest[leave], [t[leave] for t in columns])
+            order = index_order(g, got[1])
+            kept = [t[stay] for t in columns]
+            at = merged_positions(kept[1], got[1][order])
+            columns = [merged(*at, t, u[order]) for t, u in zip(kept, got)]
+            self.points, self.index = columns[0], columns[1]
+            self.batch = columns[2] if self.batched else None
+            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
+            self.all_wanted = True
+            self._home = None  # the rows are no longer those that came
         else:
             self.points = points
 
@@ -293,15 +318,41 @@ class Local:
         return self.index[self.wanted]
 
     def send_back(self, index: torch.Tensor, *values: torch.Tensor) -> List[torch.Tensor]:
-        """Each of `values`, rows of this slab's points (global `index`), sent to
-        the ranks that own them: this rank's rows, in its input order."""
+        """Each of `values`, rows of this slab's points (global `index`, sorted),
+        sent to the ranks that own them: this rank's rows, in its input order."""
         return send_to_owners(self.g, self.g.counts, index, values)
+
+    def send_home(self, *values: torch.Tensor) -> List[torch.Tensor]:
+        """send_back of a row for every point of the slab (in its order), by
+        the way the points came: no index travels. Not after a move."""
+        assert self._home is not None, "send_home: the slab's points moved; use send_back"
+        send, recv = self._home_splits
+        out = []
+        for value in values:
+            received = self.g.all_to_all(value, recv, send)
+            out.append(received.new_empty((self._home.numel(), *value.shape[1:])).index_copy_(0, self._home, received))
+        return out
 
 
 def index_order(g: Group, index: torch.Tensor) -> torch.Tensor:
     """The order that sorts distinct global indices, by a 32-bit key where
     they fit (half the radix passes of the 64-bit one)."""
     return torch.sort(index.to(torch.int32) if g.total < 1 << 31 else index).indices
+
+
+def merged_positions(first: torch.Tensor, second: torch.Tensor):
+    """(at_first, at_second): where the rows of two sorted lists of distinct
+    indices (none in both) go in their merged, sorted list."""
+    at_first = torch.searchsorted(second, first) + torch.arange(first.numel(), device=first.device)
+    at_second = torch.searchsorted(first, second) + torch.arange(second.numel(), device=second.device)
+    return at_first, at_second
+
+
+def merged(at_first: torch.Tensor, at_second: torch.Tensor, first: torch.Tensor, second: torch.Tensor):
+    """The rows of `first` and `second` placed at `at_first` and `at_second`
+    (merged_positions') in one tensor."""
+    out = first.new_empty((at_first.numel() + at_second.numel(), *first.shape[1:]))
+    return out.index_copy_(0, at_first, first).index_copy_(0, at_second, second)
 
 
 def owner_rank(g: Group, counts: List[int], index: torch.Tensor) -> torch.Tensor:
@@ -312,9 +363,10 @@ def owner_rank(g: Group, counts: List[int], index: torch.Tensor) -> torch.Tensor
 
 
 def send_to_owners(g: Group, counts: List[int], index: torch.Tensor, values) -> List[torch.Tensor]:
-    """Each of `values`, rows of global `index` (rows owned by the ranks as
-    `counts` says), sent to their owners: this rank's rows, in its order."""
-    got_index, *got = g.exchange(owner_rank(g, counts, index), [index, *values])
+    """Each of `values`, rows of global `index` (sorted, rows owned by the
+    ranks as `counts` says), sent to their owners: this rank's rows, in its
+    order."""
+    got_index, *got = g.exchange(owner_rank(g, counts, index), [index, *values], grouped=True)
     rows = got_index - sum(counts[: g.rank])
     out = []
     for value, received in zip(values, got):
@@ -349,8 +401,12 @@ def check_inside(points: torch.Tensor, batch: Optional[torch.Tensor], box: torch
         return
     if box.shape[0] > 1 and batch is None:
         raise ValueError("torchvor.distributed.voronoi: a box per cloud needs batch")
-    rows = box[batch] if batch is not None else box[0].expand(points.shape[0], 2, 3)
-    outside = (points < rows[:, 0]) | (points > rows[:, 1])
+    if batch is not None:
+        rows = box[batch]
+        outside = (points < rows[:, 0]) | (points > rows[:, 1])
+    else:  # one box: the extremes decide
+        low, high = torch.aminmax(points, dim=0)
+        outside = (low < box[0, 0]) | (high > box[0, 1])
     if periodic is not None:
         outside &= ~periodic
     if bool(outside.any()):
@@ -362,7 +418,7 @@ def halo_rounds(g: Group, local: Local, compute, shortfall, max_rounds: int = 8)
     """Runs `compute(points, batch)` on the slab and a growing halo until
     `shortfall(result, clearance, rows, width)` is 0 for every row, the last
     round with the whole cloud; returns (the global index of each point
-    computed, the rows of the slab's own points, the result). `clearance`:
+    computed, the rows of the slab's wanted points, the result). `clearance`:
     each computed point's distance to the halo's edge; the shortfall: how
     much wider the halo must be for each row that counts (the slab's points
     `rows`, or the queries), inf: as wide as the cloud."""
@@ -370,8 +426,7 @@ def halo_rounds(g: Group, local: Local, compute, shortfall, max_rounds: int = 8)
     for round_ in range(max_rounds + 1):
         if round_ == max_rounds:
             width = math.inf
-        points, index, batch, own = local.cloud(width)
-        rows = own.nonzero().squeeze(1)
+        points, index, batch, rows = local.cloud(width)
         clearance = local.slabs.clearance(points[:, local.slabs.axis], g.rank, width)
 
         def work():
@@ -396,47 +451,50 @@ def certify_rows(g: Group, local: Local, compute, shortfall, extract, max_rounds
     round computes the slab with the first halo, each later one only the rows
     not yet certified, among the points of a wider halo within 1.25 times the
     reach they asked for (near_seeds). `compute(points, batch, rows)` may
-    compute the rows' results alone; `extract(result, index, rows)`
-    gives the rows' outputs (tensors, row by row; `index` the global index of
-    each point computed); returns them for every slab point, in
-    `local.points`' order."""
+    compute the rows' results alone; `shortfall(result, clearance, rows,
+    width)` as halo_rounds', but `clearance` holds the rows' alone;
+    `extract(result, index, rows)` gives the rows' outputs (tensors, row by
+    row; `index` the global index of each point computed); returns them for
+    every slab point, in `local.points`' order."""
     width = FIRST_HALO_SPACINGS * local.slabs.spacing
     outputs: Optional[List[torch.Tensor]] = None
     pending = reach = None  # the rows still to certify (None: all), and the reach each asks for
-    axis = local.slabs.axis
+    slabs, axis = local.slabs, local.slabs.axis
     for round_ in range(max_rounds + 1):
         if round_ == max_rounds:
             width = math.inf
-        points, index, batch, own = local.cloud(width)
-        rows = own.nonzero().squeeze(1)
-        clearance = local.slabs.clearance(points[:, axis], g.rank, width)
+        points, index, batch, rows = local.cloud(width)
 
-        def work(points=points, index=index, batch=batch, clearance=clearance):
+        def work(points=points, index=index, batch=batch):
             if pending is None:
                 seeds = rows
+                clearance = slabs.clearance(points[seeds, axis], g.rank, width)
             else:  # the points within reach of a pending seed, the seeds among them
                 sub, bound = near_seeds(points, batch, rows[pending], reach, axis)
                 seeds = torch.searchsorted(sub, rows[pending])
-                points, index, batch, clearance = points[sub], index[sub], batch[sub], clearance[sub].clone()
-                clearance[seeds] = torch.minimum(clearance[seeds], bound)  # a point left out lies farther
+                points, index = points[sub], index[sub]
+                batch = batch[sub] if batch is not None else None
+                # a point left out lies farther than bound
+                clearance = torch.minimum(slabs.clearance(points[seeds, axis], g.rank, width), bound)
             result = compute(points, batch, seeds)
             short = torch.nan_to_num(shortfall(result, clearance, seeds, width), nan=math.inf)
             if width == math.inf or g.size == 1:
                 short = torch.zeros_like(short)  # the whole cloud is there
-            return short, extract(result, index, seeds), clearance[seeds]
+            return short, extract(result, index, seeds), clearance
 
-        short, values, seed_clearance = together(g, work)
+        short, values, clearance = together(g, work)
         done = short == 0
-        if outputs is None:
-            outputs = [v.new_empty((rows.numel(), *v.shape[1:])) for v in values]
-        at = torch.arange(rows.numel(), device=g.device) if pending is None else pending
-        for out, v in zip(outputs, values):
-            out[at[done]] = v[done]
-        pending, reach = at[~done], 1.25 * (short[~done] + seed_clearance[~done])
+        if outputs is None:  # every row: the values stand, the pending rows' replaced in later rounds
+            outputs = list(values)
+        else:
+            for out, v in zip(outputs, values):
+                out[pending[done]] = v[done]
         need = float(short.max()) if short.numel() else 0.0
         wanted = float(g.reduce(torch.tensor([need], dtype=torch.float64, device=g.device), dist.ReduceOp.MAX)[0])
         if wanted == 0.0:
             return outputs
+        left = (~done).nonzero().squeeze(1)
+        pending, reach = (left if pending is None else pending[left]), 1.25 * (short[left] + clearance[left])
         width = max(2 * width, width + 1.25 * wanted)  # inf (or NaN: then the whole cloud) when a reach is
         if not width < math.inf:
             width = math.inf
@@ -448,7 +506,8 @@ def certify_rows(g: Group, local: Local, compute, shortfall, extract, max_rounds
 NEAR_PAIRS = 1 << 23
 
 
-def near_seeds(points: torch.Tensor, batch: torch.Tensor, seeds: torch.Tensor, reach: torch.Tensor, axis: int):
+def near_seeds(points: torch.Tensor, batch: Optional[torch.Tensor], seeds: torch.Tensor, reach: torch.Tensor,
+               axis: int):
     """(rows, bound): the sorted rows of `points` within `reach` of one of the
     rows `seeds` (seeds included), and for each seed how far a point left out
     lies at least: every point within the largest reach, by a radius search,
@@ -460,7 +519,8 @@ def near_seeds(points: torch.Tensor, batch: torch.Tensor, seeds: torch.Tensor, r
         volume = float(extent.prod())
         density = points.shape[0] / volume if volume > 0.0 else math.inf  # flat: the axis alone
         if seeds.numel() * density * (4.0 / 3.0) * math.pi * min(r, float(extent.max())) ** 3 <= NEAR_PAIRS:
-            found = _plain_radius(points.detach(), r, points[seeds].detach(), batch=batch, query_batch=batch[seeds])
+            found = _plain_radius(points.detach(), r, points[seeds].detach(), batch=batch,
+                                  query_batch=batch[seeds] if batch is not None else None)
             rows = torch.unique(torch.cat([found.edge_index[0], seeds]))
             return rows, torch.full_like(reach, r)
     x = points[:, axis].double()
@@ -481,22 +541,12 @@ def within_any(x: torch.Tensor, centres: torch.Tensor, reach: torch.Tensor) -> t
 def cell_shortfall(cells: VoronoiCells, clearance: torch.Tensor) -> torch.Tensor:
     """(N,) float64 of every computed cell: how far twice its radius (with
     CERTIFY_SLACK) passes its clearance; inf where the cell failed."""
-    computed = (cells.status == CellStatus.SUCCESS) | (cells.status == CellStatus.DUPLICATE)
-    reach = 2 * cells.radius.double() * (1 + CERTIFY_SLACK)
-    excess = (reach - clearance).clamp_min(0)
-    return torch.where(computed, torch.nan_to_num(excess, nan=math.inf), torch.full_like(excess, math.inf))
+    failed = (cells.status != CellStatus.SUCCESS) & (cells.status != CellStatus.DUPLICATE)
+    excess = cells.radius.to(torch.float64, copy=True).mul_(2 * (1 + CERTIFY_SLACK)).sub_(clearance).clamp_min_(0)
+    return excess.nan_to_num_(nan=math.inf).masked_fill_(failed, math.inf)
 
 
-def pack_cells(cells: VoronoiCells, rows: torch.Tensor, *more: torch.Tensor):
-    """The fields of cells `rows` as two tensors (and `more` floating columns
-    appended to the first): (R, 6 + ...) of the floating fields, (R, 2) int32
-    of status and neighbors_needed."""
-    floats = torch.cat([cells.volume[rows].unsqueeze(1), cells.centroid[rows], cells.second_moment[rows].unsqueeze(1),
-                        cells.radius[rows].to(cells.volume.dtype).unsqueeze(1), *more], 1)
-    ints = torch.stack([cells.status[rows].to(torch.int32), cells.neighbors_needed[rows]], 1)
-    return floats, ints
-
-
-def unpack_cells(floats: torch.Tensor, ints: torch.Tensor) -> VoronoiCells:
-    return VoronoiCells(floats[:, 0], floats[:, 1:4], floats[:, 4], ints[:, 0].to(torch.int8),
-                        ints[:, 1].contiguous(), floats[:, 5])
+def cell_columns(cells: VoronoiCells, rows=slice(None)) -> List[torch.Tensor]:
+    """The fields of cells `rows` as they travel, a collective each (rows a
+    slice: no copy); VoronoiCells(*columns) makes the cells again."""
+    return [t[rows] for t in cells]

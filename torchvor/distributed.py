@@ -45,8 +45,8 @@ from . import periodic as _periodic
 from .ops import DEFAULT_MEMORY_BUDGET, KNN, CellStatus, VoronoiCells, _check_on_failure
 from .ops import _voronoi_rows, knn as _plain_knn
 from ._slabs import (
-    Group, Local, Slabs, agree, cell_shortfall, certify_rows, check_inside, global_batch, global_box, halo_rounds,
-    pack_cells, send_to_owners, together, unpack_cells)
+    Group, Local, Slabs, agree, cell_columns, cell_shortfall, certify_rows, check_inside, global_batch, global_box,
+    halo_rounds, send_to_owners, together)
 
 __all__ = ["knn", "lloyd", "voronoi", "voronoi_graph"]
 
@@ -88,20 +88,20 @@ def _slab_cells(g: Group, local: "Local", box_arg, batched: bool, kwargs) -> Vor
     """The cells of this rank's wanted slab points (the plain voronoi's,
     on_failure "flag"), in the order of `local.points`. The halo's cells are
     not computed: its points only bound the slab's."""
-    return unpack_cells(*_slab_rows(g, local, box_arg, batched, kwargs))
+    return VoronoiCells(*_slab_rows(g, local, box_arg, batched, kwargs))
 
 
-def _slab_rows(g: Group, local: "Local", box_arg, batched: bool, kwargs):
-    """_slab_cells' outputs as pack_cells packs them (floats, ints)."""
+def _slab_rows(g: Group, local: "Local", box_arg, batched: bool, kwargs) -> List[torch.Tensor]:
+    """_slab_cells' outputs as cell_columns gives them."""
 
     def compute(p, b, rows):
         return _voronoi_rows(p, box_arg, rows, b if batched else None, **kwargs)
 
-    def shortfall(cells, clearance, rows, width):  # cells: the rows' own
-        return cell_shortfall(cells, clearance[rows])
+    def shortfall(cells, clearance, rows, width):  # cells and clearance: the rows' own
+        return cell_shortfall(cells, clearance)
 
     def extract(cells, index, rows):
-        return pack_cells(cells, slice(None))
+        return cell_columns(cells)
 
     return certify_rows(g, local, compute, shortfall, extract)
 
@@ -130,8 +130,8 @@ def voronoi(points: torch.Tensor, box=None, *, group=None, batch: Optional[torch
     if axes is not None:
         return _periodic_voronoi(points, box, batch, group, axes, kwargs)
     on_failure, g, points, batch, box_arg, local = _start("voronoi", points, box, batch, group, kwargs)
-    rows = _slab_rows(g, local, box_arg, batch is not None, kwargs)  # packed as they travel
-    out = unpack_cells(*local.send_back(local.index, *rows))
+    columns = _slab_rows(g, local, box_arg, batch is not None, kwargs)
+    out = VoronoiCells(*local.send_home(*columns))
     _report_failures(out, on_failure, "voronoi")
     return out
 
@@ -166,8 +166,8 @@ class _RankAgreement(_periodic.Agreement):
         wanted = torch.zeros(points.shape[0], dtype=torch.bool, device=g.device)
         wanted[rows] = True
         local = Local(g, Slabs(g, points, box.double()), points, batch, wanted)
-        packed = _slab_rows(g, local, box, batch is not None, {"k": k, "memory_budget": memory_budget})
-        every = unpack_cells(*local.send_back(local.wanted_index, *packed))
+        columns = _slab_rows(g, local, box, batch is not None, {"k": k, "memory_budget": memory_budget})
+        every = VoronoiCells(*local.send_back(local.wanted_index, *columns))
         return VoronoiCells(*(t[rows] for t in every))
 
 
@@ -262,11 +262,10 @@ def voronoi_graph(points: torch.Tensor, box=None, *, group=None, batch: Optional
     key = edges[:, 1] * max(g.total, 1) + edges[:, 0]  # by cell, then neighbour
     order = torch.sort(key).indices
     edges, faces = edges[order], faces[order]
-    floats, ints = local.send_back(index[rows], *pack_cells(graph.cells, rows, graph.wall_area[rows]))
-    cells = unpack_cells(floats, ints)
+    *columns, wall_area = local.send_home(*cell_columns(graph.cells, rows), graph.wall_area[rows])
+    cells = VoronoiCells(*columns)
     _report_failures(cells, on_failure, "voronoi_graph")
-    return VoronoiGraph(edges.t().contiguous(), faces[:, 0].contiguous(), faces[:, 1:4].contiguous(),
-                        floats[:, 6:12].contiguous(), cells)
+    return VoronoiGraph(edges.t().contiguous(), faces[:, 0].contiguous(), faces[:, 1:4].contiguous(), wall_area, cells)
 
 
 def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: Optional[float] = None,
@@ -344,8 +343,8 @@ def lloyd(points: torch.Tensor, box=None, iters: int = 10, *, group=None, tol: O
         history.append(step)
         stop = False
         if callback is not None:  # the caller's rows and order
-            mine, *floats_ints = local.send_back(local.index, moved, *pack_cells(cells, slice(None)))
-            stop = callback(iteration, mine, unpack_cells(*floats_ints)) is True
+            mine, *columns = local.send_back(local.index, moved, *cell_columns(cells))
+            stop = callback(iteration, mine, VoronoiCells(*columns)) is True
         local.move(moved)
         if progress and g.rank == 0:
             print(_progress_line(step, iters), file=sys.stderr, flush=True)
@@ -408,8 +407,8 @@ def knn(points: torch.Tensor, k: int, queries: Optional[torch.Tensor] = None, *,
                           query_batch=asked.batch if batch is not None else None)
 
     def shortfall(result, clearance, rows, width):
-        if asked is None:
-            rows_clearance = clearance[rows]
+        if asked is None:  # certify_rows': the rows' clearance
+            rows_clearance = clearance
         else:
             rows_clearance = slabs.clearance(asked.points[:, slabs.axis], g.rank, width)
             rows = slice(None)
@@ -421,7 +420,7 @@ def knn(points: torch.Tensor, k: int, queries: Optional[torch.Tensor] = None, *,
         return [result.dist2[rows], torch.where(idx >= 0, index[idx.clamp_min(0)], idx)]  # global indices
 
     if asked is None:
-        return KNN(*local.send_back(local.index, *certify_rows(g, local, compute, shortfall, extract)))
+        return KNN(*local.send_home(*certify_rows(g, local, compute, shortfall, extract)))
     index, _, result = halo_rounds(g, local, compute, shortfall)
     return KNN(*asked.send_back(*extract(result, index, slice(None))))
 
