@@ -3,7 +3,7 @@ processes, gloo) against the single-process torchvor.voronoi of the same cloud:
 strong scaling (the same cloud over more ranks) and weak scaling (--weak: the cloud
 grows with the ranks), time and peak memory per rank.
 
-    python benchmarks/bench_distributed.py --device cuda --sizes 10M,100M --ranks 1,2 [--weak] [--check]
+    python benchmarks/bench_distributed.py --device cuda --sizes 10M,100M --ranks 1,2 [--weak] [--phases]
 
 Each rank holds a contiguous share of the cloud in its stored order (blue noise keeps
 white noise's random order, so every rank's share spans the box: the exchange to
@@ -16,6 +16,8 @@ import datetime
 import os
 import socket
 import sys
+import time
+from collections import defaultdict
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -25,6 +27,38 @@ import torch.distributed as dist  # noqa: E402
 import torch.multiprocessing as mp  # noqa: E402
 import torchvor  # noqa: E402
 import torchvor.distributed as tvd  # noqa: E402
+from torchvor import _slabs  # noqa: E402
+
+# --phases: these steps of one call timed on each rank (inclusive: an exchange
+# inside a slab step counts in both; the device synchronized around each).
+PHASES = [(tvd, "agree"), (tvd, "global_box"), (tvd, "check_inside"), (_slabs.Slabs, "__init__"),
+          (_slabs.Local, "__init__"), (_slabs.Local, "cloud"), (_slabs.Group, "exchange"), (_slabs, "index_order"),
+          (_slabs.Group, "all_to_all"), (tvd, "_voronoi_rows"), (tvd, "cell_shortfall"), (_slabs, "near_seeds"),
+          (_slabs.Local, "send_back"), (_slabs.Local, "send_home"), (tvd, "certify_rows")]
+
+
+def timed_phases(device: torch.device):
+    """Wraps PHASES with timers; returns (seconds by name, calls by name, undo)."""
+    seconds, calls, undo = defaultdict(float), defaultdict(int), []
+    for owner, name in PHASES:
+        original = getattr(owner, name, None)
+        if original is None:  # not in this version
+            continue
+        label = f"{getattr(owner, '__name__', owner)}.{name}".replace("torchvor.", "")
+
+        def wrapper(*args, _original=original, _label=label, **kwargs):
+            common.synchronize(device)
+            start = time.perf_counter()
+            try:
+                return _original(*args, **kwargs)
+            finally:
+                common.synchronize(device)
+                seconds[_label] += time.perf_counter() - start
+                calls[_label] += 1
+
+        setattr(owner, name, wrapper)
+        undo.append((owner, name, original))
+    return seconds, calls, lambda: [setattr(o, n, f) for o, n, f in undo]
 
 
 def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
@@ -66,7 +100,17 @@ def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
             times.append((datetime.datetime.now() - start).total_seconds())
     peak = torch.cuda.max_memory_allocated(device) if args.device == "cuda" else 0
     failed = int(((cells.status != 0) & (cells.status != 5)).sum())
-    results[rank] = (sorted(times)[len(times) // 2], peak, share.shape[0], failed)
+    phases = None
+    if args.phases:
+        seconds, calls, undo = timed_phases(device)
+        dist.barrier()
+        start = time.perf_counter()
+        call()
+        common.synchronize(device)
+        seconds["whole call"] = time.perf_counter() - start
+        undo()
+        phases = [(name, 1000 * s, calls[name]) for name, s in seconds.items()]
+    results[rank] = (sorted(times)[len(times) // 2], peak, share.shape[0], failed, phases)
     dist.destroy_process_group()
 
 
@@ -90,6 +134,11 @@ def run(args, ranks: int, n: int):
     results = manager.dict()
     mp.spawn(worker, args=(ranks, port, args, n, results), nprocs=ranks, join=True)
     rows = [results[r] for r in range(ranks)]
+    for r, row in enumerate(rows):
+        if row[4]:
+            print(f"phases of one call, rank {r} of {ranks}, n={n}: " +
+                  "; ".join(f"{name} {ms:.1f} ms" + (f" x{calls}" if calls > 1 else "") for name, ms, calls in row[4]),
+                  flush=True)
     return max(r[0] for r in rows), [r[1] for r in rows], sum(r[3] for r in rows)
 
 
@@ -99,6 +148,8 @@ def main():
     parser.add_argument("--kind", default="blue", help="blue, white or perturbed")
     parser.add_argument("--weak", action="store_true", help="each size is a rank's share (the cloud grows)")
     parser.add_argument("--spatial", action="store_true", help="each rank holds a slab of the cloud along x")
+    parser.add_argument("--phases", action="store_true",
+                        help="after timing, one more call with its steps timed on each rank (synchronized)")
     args = parser.parse_args()
     device, _ = common.setup(args)
     if device.type == "cuda" and max(args.ranks) > torch.cuda.device_count():
