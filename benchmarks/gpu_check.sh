@@ -126,7 +126,7 @@ for step in "${@:-cudatests}"; do
       python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_SIZES:-10M,100M} --ranks 1,$gpus \
         --blue-iters ${DIST_BLUE_ITERS:-30} 2>&1 | grep -v USDT | tee -a "$OUT/distributed.log"
       python3 benchmarks/bench_distributed.py --device cuda --sizes ${DIST_WEAK_SIZES:-100M} --ranks 1,$gpus --weak \
-        --blue-iters ${DIST_BLUE_ITERS:-30} 2>&1 \
+        --blue-iters ${DIST_BLUE_ITERS:-30} --phases 2>&1 \
         | grep -v USDT | tee -a "$OUT/distributed.log" ;;
     lloyd10m) python3 benchmarks/bench_lloyd.py --device cuda --sizes 10M --iters 20 2>&1 | grep -v USDT | tee "$OUT/bench_lloyd10m.log" ;;
     timeline)  # where a voronoi call's and a Lloyd step's time goes, GPU activity by activity (blue noise,
