@@ -266,6 +266,19 @@ def test_distributed_fuzz_slice(tmp_path):
     assert not problems, "\n".join(problems[:10])
 
 
+def test_merged_positions_merge_two_sorted_lists():
+    """_slabs.merged_positions and merged: two sorted lists of distinct
+    indices (one long, one short, either empty) placed as a sort would."""
+    generator = torch.Generator().manual_seed(3)
+    for n, m in [(1000, 37), (50, 0), (0, 20), (1, 1), (300, 300)]:
+        every = torch.randperm(4 * (n + m) + 1, generator=generator)[: n + m]
+        first, second = every[:n].sort().values, every[n:].sort().values
+        at = _slabs.merged_positions(first, second)
+        assert torch.equal(_slabs.merged(*at, first, second), every.sort().values)
+        rows = torch.rand(n, 3, generator=generator)
+        assert torch.equal(_slabs.merged(*at, rows, torch.full((m, 3), -1.0))[at[0]], rows)
+
+
 def test_distributed_needs_init():
     points = torch.rand(10, 3, dtype=torch.float64)
     if dist.is_available() and dist.is_initialized():
