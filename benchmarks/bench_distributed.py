@@ -3,7 +3,7 @@ processes, gloo) against the single-process torchvor.voronoi of the same cloud:
 strong scaling (the same cloud over more ranks) and weak scaling (--weak: the cloud
 grows with the ranks), time and peak memory per rank.
 
-    python benchmarks/bench_distributed.py --device cuda --sizes 10M,100M --ranks 1,2 [--weak] [--phases]
+    python benchmarks/bench_distributed.py --device cuda --sizes 10M,100M --ranks 1,2 [--weak] [--phases] [--profile]
 
 Each rank holds a contiguous share of the cloud in its stored order (blue noise keeps
 white noise's random order, so every rank's share spans the box: the exchange to
@@ -110,6 +110,16 @@ def worker(rank: int, ranks: int, port: int, args, n: int, results) -> None:
         seconds["whole call"] = time.perf_counter() - start
         undo()
         phases = [(name, 1000 * s, calls[name]) for name, s in seconds.items()]
+    if args.profile:  # the device's activities of one more call, by total time
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU] +
+                                    ([torch.profiler.ProfilerActivity.CUDA] if args.device == "cuda" else [])) as prof:
+            dist.barrier()
+            call()
+            common.synchronize(device)
+        sort_by = "self_cuda_time_total" if args.device == "cuda" else "self_cpu_time_total"
+        print(f"profile of one call, rank {rank} of {ranks}:\n" +
+              prof.key_averages().table(sort_by=sort_by, row_limit=args.profile_rows, max_name_column_width=70),
+              flush=True)
     results[rank] = (sorted(times)[len(times) // 2], peak, share.shape[0], failed, phases)
     dist.destroy_process_group()
 
@@ -150,6 +160,9 @@ def main():
     parser.add_argument("--spatial", action="store_true", help="each rank holds a slab of the cloud along x")
     parser.add_argument("--phases", action="store_true",
                         help="after timing, one more call with its steps timed on each rank (synchronized)")
+    parser.add_argument("--profile", action="store_true",
+                        help="after timing, one more call under torch.profiler on each rank (its top activities)")
+    parser.add_argument("--profile-rows", type=int, default=30, help="rows of the --profile table")
     args = parser.parse_args()
     device, _ = common.setup(args)
     if device.type == "cuda" and max(args.ranks) > torch.cuda.device_count():

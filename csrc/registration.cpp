@@ -21,8 +21,8 @@ TORCH_LIBRARY(torchvor, m) {
   // the largest distance from the point to a vertex of its cell, rounded up
   // to float32 (NaN for a failed cell, 0 for a duplicate). k: first-pass
   // neighbours; None measures it on a pilot sample of cells. rows (M,) int64:
-  // only those cells are computed, the others are NOT_COMPUTED with NaN outputs
-  // (exact copies are DUPLICATE in any case).
+  // only those cells are computed, and the outputs have M rows, row m the
+  // cell of points[rows[m]].
   m.def(
       "voronoi_cells(Tensor points, Tensor box, Tensor? batch=None, int? k=None, "
       "int memory_budget=1073741824, Tensor? rows=None) -> (Tensor volume, Tensor centroid, Tensor second_moment, "

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import math
 import os
 import socket
 import sys
@@ -277,6 +278,26 @@ def test_merged_positions_merge_two_sorted_lists():
         assert torch.equal(_slabs.merged(*at, first, second), every.sort().values)
         rows = torch.rand(n, 3, generator=generator)
         assert torch.equal(_slabs.merged(*at, rows, torch.full((m, 3), -1.0))[at[0]], rows)
+
+
+def test_slab_tests_in_the_points_dtype_are_the_float64_tests():
+    """Slabs.near compares float32 coordinates with each edge rounded up to
+    float32: the same rows as the comparison in float64, at and around the
+    edges too."""
+    generator = torch.Generator().manual_seed(5)
+    slabs = object.__new__(_slabs.Slabs)
+    edges = torch.rand(3, generator=generator, dtype=torch.float64).sort().values.tolist()
+    slabs.bounds, slabs.size = [-math.inf, *edges, math.inf], 4
+    for width in (0.0, 1e-3, 0.37, math.inf):
+        near_edges = torch.tensor([e + sign * width for e in edges for sign in (-1, 1)]).float()
+        up, down = torch.nextafter(near_edges, near_edges + 1), torch.nextafter(near_edges, near_edges - 1)
+        x = torch.cat([torch.rand(5000, generator=generator), near_edges, up, down])
+        x = x[torch.isfinite(x)]
+        for dtype in (torch.float32, torch.float64):
+            for s in range(slabs.size):
+                wide = x.double()
+                want = (wide >= slabs.bounds[s] - width) & (wide < slabs.bounds[s + 1] + width)
+                assert torch.equal(slabs.near(x.to(dtype), s, width), want), (width, dtype, s)
 
 
 def test_distributed_needs_init():

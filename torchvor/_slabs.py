@@ -23,6 +23,17 @@ FIRST_HALO_SPACINGS = 3.0
 BALANCE_BINS = 1 << 16
 
 
+def _ceiling(value: float, dtype: torch.dtype) -> float:
+    """The smallest value of `dtype` at or above `value` (a float64): for x
+    of that dtype, x >= value exactly when x >= _ceiling(value, dtype)."""
+    if dtype == torch.float64 or not math.isfinite(value):
+        return value
+    rounded = torch.tensor(value, dtype=dtype)
+    if float(rounded) < value:
+        rounded = torch.nextafter(rounded, torch.tensor(math.inf, dtype=dtype))
+    return float(rounded)
+
+
 class Group:
     """The process group, the ranks' point counts and offsets."""
 
@@ -73,6 +84,16 @@ class Group:
         recv = torch.empty_like(send)
         dist.all_to_all_single(recv, send, group=self.group)
         return send.tolist(), recv.tolist()
+
+    def received(self, *sends: List[int]) -> List[List[int]]:
+        """For each of `sends` (how many rows this rank sends to each rank),
+        how many it receives from each rank (one collective for all)."""
+        if not sends:
+            return []
+        sent = torch.tensor(sends, dtype=torch.int64, device=self.device).t().contiguous()  # (ranks, len(sends))
+        got = torch.empty_like(sent)
+        dist.all_to_all_single(got, sent, group=self.group)
+        return got.t().tolist()
 
     def exchange(self, dest: torch.Tensor, tensors: Sequence[torch.Tensor],
                  grouped: bool = False) -> List[torch.Tensor]:
@@ -208,16 +229,23 @@ class Slabs:
         inner = torch.tensor(self.bounds[1:-1], dtype=torch.float64, device=coordinate.device)
         return torch.searchsorted(inner, coordinate.double().contiguous(), right=True)
 
+    def near(self, coordinate: torch.Tensor, slab: int, width: float) -> torch.Tensor:
+        """(N,) bool: the coordinates in `slab` widened by `width` on each side,
+        [bounds[slab] - width, bounds[slab + 1] + width) in float64, compared
+        in the coordinates' own dtype (each edge rounded up to it: exactly
+        the same test, no float64 copy)."""
+        lo = _ceiling(self.bounds[slab] - width, coordinate.dtype)
+        hi = _ceiling(self.bounds[slab + 1] + width, coordinate.dtype)
+        return (coordinate >= lo) & (coordinate < hi)
+
     def halo_dest(self, coordinate: torch.Tensor, home: int, widths: List[float]):
         """(rows, dest): the rows (of points in slab `home`) within widths[s] of
         another slab s, one entry a (row, s) pair."""
         rows, dests = [], []
-        x = coordinate.double()
         for s in range(self.size):
             if s == home:
                 continue
-            near = (x >= self.bounds[s] - widths[s]) & (x < self.bounds[s + 1] + widths[s])
-            idx = near.nonzero().squeeze(1)
+            idx = self.near(coordinate, s, widths[s]).nonzero().squeeze(1)
             rows.append(idx)
             dests.append(torch.full_like(idx, s))
         if not rows:
@@ -240,36 +268,77 @@ class Local:
     the points whose results are asked for (default: all); the others only
     bound cells (a periodic call's images).
 
-    The slab's rows stay sorted by global index with no sort of the whole
-    slab: the first exchange delivers each rank's own points in their order,
-    ranks in order; later, the few rows that arrive (a halo, the points a
-    Lloyd step moves across a boundary) are sorted and merged in. `batch` is
-    None without a batch vector."""
+    The first exchange sends each point to its slab's rank and, within the
+    first halo's width of another slab, to that slab's rank too, each
+    rank's rows in their order: every rank receives its first cloud (slab
+    and halo) sorted by global index, with no sort and no second exchange.
+    The slab alone (`points`, `index`, `batch`, `wanted`) is taken from it
+    when first asked for (a wider halo, Lloyd). Later, the few rows that
+    arrive (a wider halo, the points a Lloyd step moves across a boundary)
+    are sorted and merged in. `batch` is None without a batch vector."""
 
     def __init__(self, g: Group, slabs: Slabs, points: torch.Tensor, batch: Optional[torch.Tensor],
                  wanted: Optional[torch.Tensor] = None):
         self.g, self.slabs = g, slabs
-        dest = slabs.owner(points[:, slabs.axis])
-        # How the rows came: send_home returns them the same way.
-        self._home = g.grouping(dest)
-        self._home_splits = g.splits(dest)
-        narrow = torch.int32 if g.total < 1 << 31 else torch.int64  # the index travels as narrow as it fits
         self.batched = batch is not None
-        sent = [points[self._home], (self._home + g.offset).to(narrow)]  # rows in the order they go
-        sent += [batch[self._home]] if self.batched else []
-        sent += [wanted[self._home].to(torch.uint8)] if wanted is not None else []
-        got = [g.all_to_all(t, *self._home_splits) for t in sent]
-        self.points, self.index = got[0], got[1].long()
-        self.batch = got[2] if self.batched else None
         self.all_wanted = wanted is None
-        self.wanted = got[-1].bool() if wanted is not None else \
-            torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
+        self.first_width = FIRST_HALO_SPACINGS * slabs.spacing
+        axis = slabs.axis
+        # the rows each rank gets, in this rank's order; those in its slab proper go home to this rank later
+        sent_rows = [slabs.near(points[:, axis], s, self.first_width).nonzero().squeeze(1) for s in range(g.size)]
+        send = [rows.numel() for rows in sent_rows]
+        order = torch.cat(sent_rows)
+        sent_points = points[order]
+        owned = [slabs.near(part[:, axis], s, 0.0) for s, part in enumerate(sent_points.split(send))]
+        self._home = order[torch.cat(owned)]
+        home_send = torch.stack([own.sum() for own in owned]).tolist()
+        recv, home_recv = g.received(send, home_send)
+        self._home_splits = (home_send, home_recv)
+        narrow = torch.int32 if g.total < 1 << 31 else torch.int64  # the index travels as narrow as it fits
+        sent = [sent_points, (order + g.offset).to(narrow)]
+        sent += [batch[order]] if self.batched else []
+        sent += [wanted[order].to(torch.uint8)] if wanted is not None else []
+        got = [g.all_to_all(t, send, recv) for t in sent]
+        own = slabs.near(got[0][:, axis], g.rank, 0.0)
+        # the first cloud: points, index (narrow), batch, wanted (uint8 or None), own (bool): the slab's rows
+        self._first = (got[0], got[1], got[2] if self.batched else None, got[-1] if wanted is not None else None, own)
+        self._slab: Optional[List[Optional[torch.Tensor]]] = None  # points, index, batch, wanted
+
+    def _slab_columns(self) -> List[Optional[torch.Tensor]]:
+        """The slab's points, global index, batch and wanted (taken from the first cloud once)."""
+        if self._slab is None:
+            points, index, batch, wanted, own = self._first
+            rows = own.nonzero().squeeze(1)
+            self._slab = [points[rows], index[rows].long(), batch[rows] if batch is not None else None,
+                          wanted[rows].bool() if wanted is not None else
+                          torch.ones(rows.numel(), dtype=torch.bool, device=self.g.device)]
+        return self._slab
+
+    @property
+    def points(self) -> torch.Tensor:
+        return self._slab_columns()[0]
+
+    @property
+    def index(self) -> torch.Tensor:
+        return self._slab_columns()[1]
+
+    @property
+    def batch(self) -> Optional[torch.Tensor]:
+        return self._slab_columns()[2]
+
+    @property
+    def wanted(self) -> torch.Tensor:
+        return self._slab_columns()[3]
 
     def cloud(self, width: float):
         """(points, global index, batch, rows): the slab's points and every
         point of the other slabs within `width` of it (every rank passes the
         same width), sorted by global index (batch None without a batch
         vector); `rows` (sorted): where the slab's wanted points are."""
+        if self._first is not None and width == self.first_width:
+            points, index, batch, wanted, own = self._first
+            rows = (own if wanted is None else own & wanted.bool()).nonzero().squeeze(1)
+            return points, index.long(), batch, rows
         g = self.g
         rows, dest = self.slabs.halo_dest(self.points[:, self.slabs.axis], g.rank, [width] * g.size)
         halo = g.exchange(dest, [self.points[rows], self.index[rows]] + ([self.batch[rows]] if self.batched else []))
@@ -285,23 +354,24 @@ class Local:
         now in another slab go to its rank (rows stay sorted by global index).
         Every point is wanted (Lloyd's)."""
         g = self.g
+        index, batch = self.index, self.batch
+        self._first = None  # the first cloud's points are no longer where they were
         dest = self.slabs.owner(points[:, self.slabs.axis])
         leave = dest != g.rank
         if bool(g.reduce(torch.tensor([int(bool(leave.any()))], device=g.device), dist.ReduceOp.MAX)[0]):
             stay = ~leave
-            columns = [points, self.index] + ([self.batch] if self.batched else [])
+            columns = [points, index] + ([batch] if self.batched else [])
             got = g.exchange(dest[leave], [t[leave] for t in columns])
             order = index_order(g, got[1])
             kept = [t[stay] for t in columns]
             at = merged_positions(kept[1], got[1][order])
             columns = [merged(*at, t, u[order]) for t, u in zip(kept, got)]
-            self.points, self.index = columns[0], columns[1]
-            self.batch = columns[2] if self.batched else None
-            self.wanted = torch.ones(self.index.numel(), dtype=torch.bool, device=g.device)
-            self.all_wanted = True
+            index, batch = columns[1], columns[2] if self.batched else None
             self._home = None  # the rows are no longer those that came
         else:
-            self.points = points
+            columns = [points]
+        self._slab = [columns[0], index, batch, torch.ones(index.numel(), dtype=torch.bool, device=g.device)]
+        self.all_wanted = True
 
     def send_edges(self, edges: torch.Tensor, values: torch.Tensor):
         """Edges (E, 2) of global (neighbour, cell) and their `values` sent to
@@ -422,7 +492,7 @@ def halo_rounds(g: Group, local: Local, compute, shortfall, max_rounds: int = 8)
     each computed point's distance to the halo's edge; the shortfall: how
     much wider the halo must be for each row that counts (the slab's points
     `rows`, or the queries), inf: as wide as the cloud."""
-    width = FIRST_HALO_SPACINGS * local.slabs.spacing
+    width = local.first_width
     for round_ in range(max_rounds + 1):
         if round_ == max_rounds:
             width = math.inf
@@ -456,7 +526,7 @@ def certify_rows(g: Group, local: Local, compute, shortfall, extract, max_rounds
     `extract(result, index, rows)` gives the rows' outputs (tensors, row by
     row; `index` the global index of each point computed); returns them for
     every slab point, in `local.points`' order."""
-    width = FIRST_HALO_SPACINGS * local.slabs.spacing
+    width = local.first_width
     outputs: Optional[List[torch.Tensor]] = None
     pending = reach = None  # the rows still to certify (None: all), and the reach each asks for
     slabs, axis = local.slabs, local.slabs.axis

@@ -6,6 +6,7 @@ its fake kernel (the edge count depends on the data) and the result types.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Optional
 
 import torch
@@ -174,17 +175,25 @@ torch.library.register_autograd("torchvor::voronoi_graph", _no_backward, setup_c
 # the points it bisects, the walls stay. The backward recomputes the cells'
 # faces with their moments (the same cells: the passes are deterministic).
 def _cells_setup_context(ctx, inputs, output) -> None:
-    points, box, batch, k, memory_budget, *_rows = inputs  # rows: the cells not computed have no gradient to give
+    points, box, batch, k, memory_budget, *rows = inputs
     volume, centroid, _second_moment, status, neighbors_needed, radius = output
     ctx.mark_non_differentiable(status, neighbors_needed, radius)
-    ctx.save_for_backward(points, box, batch, volume, centroid)
+    rows = rows[0] if rows else None  # the outputs' rows (None: every point's)
+    ctx.save_for_backward(points, box, batch, volume, centroid, rows)
     ctx.k, ctx.memory_budget = k, memory_budget
 
 
 def _cells_backward(ctx, grad_volume, grad_centroid, grad_second_moment, _grad_status, _grad_neighbors, _grad_radius):
-    points, box, batch, volume, centroid = ctx.saved_tensors
+    points, box, batch, volume, centroid, rows = ctx.saved_tensors
     if not ctx.needs_input_grad[0]:
         return None, None, None, None, None, None
+    if rows is not None:  # every point's row (a row asked twice: its gradients add); those not asked give none
+        n = points.shape[0]
+        volume = volume.new_full((n,), math.nan).index_copy(0, rows, volume)
+        centroid = centroid.new_full((n, 3), math.nan).index_copy(0, rows, centroid)
+        grad_volume, grad_centroid, grad_second_moment = (
+            None if grad is None else grad.new_zeros((n, *grad.shape[1:])).index_add(0, rows, grad)
+            for grad in (grad_volume, grad_centroid, grad_second_moment))
     faces = torch.ops.torchvor.voronoi_graph.default(points.detach(), box, batch, ctx.k, ctx.memory_budget, True)
     edge_index, area, face_centroid, _wall_area, moments = faces[6:]
     grad = _cell_gradients(points.detach(), volume.detach(), centroid.detach(), edge_index, area, face_centroid,

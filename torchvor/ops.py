@@ -394,8 +394,7 @@ def _voronoi_rows(points: torch.Tensor, box: torch.Tensor, rows: torch.Tensor, b
         :class:`VoronoiCells` of M rows, row m the cell of ``points[rows[m]]``;
         differentiable as :func:`voronoi`'s.
     """
-    outputs = torch.ops.torchvor.voronoi_cells.default(points, box, batch, k, memory_budget, rows)
-    return VoronoiCells(*(t.index_select(0, rows) for t in outputs))
+    return VoronoiCells(*torch.ops.torchvor.voronoi_cells.default(points, box, batch, k, memory_budget, rows))
 
 
 def _voronoi_in_grid_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
@@ -503,7 +502,7 @@ for _op in ("voronoi_cells_grid_order", "lloyd_step"):
 
 @torch.library.register_fake("torchvor::voronoi_cells")
 def _voronoi_cells_fake(points, box, batch=None, k=None, memory_budget=DEFAULT_MEMORY_BUDGET, rows=None):
-    n = points.shape[0]
+    n = points.shape[0] if rows is None else rows.shape[0]
     return (
         points.new_empty((n,)),
         points.new_empty((n, 3)),

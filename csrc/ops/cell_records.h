@@ -327,13 +327,16 @@ struct VoronoiOutputs {
 // (that launch's results replace the first's).
 using LaunchOnOutputs = std::function<void(const VoronoiOutputs&)>;
 
-// The five outputs from the records by position: in the caller's rows, or
-// in grid order with the order (torchvor::voronoi_cells_grid_order, which
-// saves the inverse order and the scattered gather: Lloyd keeps its points
-// in grid order, and then the next call's grid order is nearly the identity).
+// The five outputs from the records by position: in the caller's rows (with
+// `rows`, only those, in their order), or in grid order with the order
+// (torchvor::voronoi_cells_grid_order, which saves the inverse order and the
+// scattered gather: Lloyd keeps its points in grid order, and then the next
+// call's grid order is nearly the identity).
 template <typename Exec, typename io_t>
-VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions& options, bool grid_order) {
-  const int64_t n = in.records.size(0);
+VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions& options, bool grid_order,
+                              const c10::optional<at::Tensor>& rows = c10::nullopt) {
+  TORCH_INTERNAL_ASSERT(!(grid_order && rows.has_value()), "rows: caller's order only");
+  const int64_t n = rows.has_value() ? rows->size(0) : in.records.size(0);
   const at::Tensor volume = Exec::empty({n}, options);
   const at::Tensor centroid = Exec::empty({n, 3}, options);
   const at::Tensor second_moment = Exec::empty({n}, options);
@@ -348,7 +351,7 @@ VoronoiOutputs finish_outputs(const PositionOutputs& in, const at::TensorOptions
     at::Tensor position_of_row;
     if (!grid_order) {
       TORCH_CHECK(in.position_of_row.defined(), "torchvor: internal error: the inverse order was not computed");
-      position_of_row = in.position_of_row;
+      position_of_row = rows.has_value() ? in.position_of_row.index_select(0, *rows) : in.position_of_row;
     }
     Exec::for_each(n, ToRowsFunctor<io_t>{grid_order ? nullptr : position_of_row.data_ptr<int32_t>(),
                                           in.data<io_t>(), volume.data_ptr<io_t>(), centroid.data_ptr<io_t>(),

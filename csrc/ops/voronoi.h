@@ -40,8 +40,7 @@ struct Prepared {
 // With `faces` (voronoi_graph), the passes after the pilot also write the
 // cells' faces there (FaceTensors), and the outputs carry the face counts
 // and the grid order. With `rows`, only the cells of those rows are
-// computed (the pilot's too); the others stay NOT_COMPUTED with NaN
-// outputs, but exact copies, which are DUPLICATE in any case.
+// computed (the pilot's too) and returned, row m the cell of rows[m].
 template <typename Exec, typename io_t>
 VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                               const c10::optional<at::Tensor>& batch, const at::Tensor& bounds,
@@ -53,7 +52,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
   PositionOutputs out = poisoned_outputs<io_t>(prepared.status, points.options());
   int64_t first_pass_k = 0;
   const auto finished = [&] {
-    VoronoiOutputs outputs = finish_outputs<Exec, io_t>(out, points.options(), grid_order);
+    VoronoiOutputs outputs = finish_outputs<Exec, io_t>(out, points.options(), grid_order, rows);
     outputs.first_pass_k = first_pass_k;
     if (faces != nullptr) {
       outputs.face_count = face_counts<io_t>(out.records);
