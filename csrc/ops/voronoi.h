@@ -108,12 +108,10 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
                                                             out.status.data_ptr<int8_t>(), out.data<io_t>()});
     }
     if (rows.has_value() && kept > 0) {
-      // The cells not asked for are written by no pass: their records say so
-      // from the start (after a rebuild too, where the pilot's cells,
-      // numbered in the old order, may sit at positions not asked for now).
+      // Every cell not computed yet (after a rebuild too, where the pilot's
+      // cells are numbered in the old order). The records of cells not asked
+      // for are never written nor returned.
       out.status.slice(0, 0, kept).fill_(int(core::kNotComputed));
-      Exec::for_each(kept, PoisonUnwrittenFunctor<io_t>{prepared.positions.data_ptr<int32_t>(),
-                                                        out.status.data_ptr<int8_t>(), out.data<io_t>()});
     }
   };
   const auto run = [&](const at::Tensor& cells, const PassSettings& pass, c10::optional<double> neighbor_spread) {
