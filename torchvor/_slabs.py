@@ -284,7 +284,8 @@ class Local:
         self.all_wanted = wanted is None
         self.first_width = FIRST_HALO_SPACINGS * slabs.spacing
         axis = slabs.axis
-        # the rows each rank gets, in this rank's order; those in its slab proper go home to this rank later
+        # the rows each rank gets (its slab and first halo; a pass over the points a rank), in this
+        # rank's order; `owned`: those of its slab proper, whose results send_home brings back
         sent_rows = [slabs.near(points[:, axis], s, self.first_width).nonzero().squeeze(1) for s in range(g.size)]
         send = [rows.numel() for rows in sent_rows]
         order = torch.cat(sent_rows)
