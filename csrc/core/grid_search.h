@@ -205,18 +205,39 @@ struct NeighborHeap {
     key[e] = item;
   }
 
+  // Whether `a` comes before `b` in the output: by distance, then by
+  // tie_order where given (else by index, as the keys compare).
+  TV_HD static bool before(const HeapKey<T>& a, const HeapKey<T>& b, const int32_t* tie_order) {
+    if (tie_order == nullptr || a.dist2() != b.dist2()) return a < b;
+    return tie_order[a.index()] < tie_order[b.index()];
+  }
+
+  // Keys sorted by (distance, index): each run at one distance reordered by
+  // tie_order (an insertion sort; runs are rare but on lattices).
+  TV_HD void order_ties(const int32_t* tie_order) {
+    for (int32_t e = 1; e < size; ++e) {
+      const HeapKey<T> item = key[e];
+      int32_t j = e;
+      while (j > 0 && key[j - 1].dist2() == item.dist2() && before(item, key[j - 1], tie_order)) {
+        key[j] = key[j - 1];
+        --j;
+      }
+      key[j] = item;
+    }
+  }
+
   // write_sorted by a group of lanes over a heap they share: each lane
   // places its keys at their ranks (keys are distinct), so no lane sorts.
   template <typename index_t, typename Lanes>
   TV_HD void write_ranked(T* dist2_out, index_t* index_out, int64_t stride, T infinity,
-                          Lanes lanes) const {
+                          Lanes lanes, const int32_t* tie_order = nullptr) const {
     for (int32_t e = lanes.index(); e < capacity; e += Lanes::kCount) {
       int32_t at = e;
       HeapKey<T> item = HeapKey<T>::make(infinity, -1);
       if (e < size) {
         item = key[e];
         at = 0;
-        for (int32_t m = 0; m < size; ++m) at += int32_t(key[m] < item);
+        for (int32_t m = 0; m < size; ++m) at += int32_t(before(key[m], item, tie_order));
       }
       index_out[at * stride] = item.index();
       if (dist2_out) dist2_out[at * stride] = item.dist2();
@@ -228,7 +249,8 @@ struct NeighborHeap {
   // consumed. Host: an AVX2 rank count (key_ranks.h), else std::sort;
   // device: heap sort in place (no extra memory).
   template <typename index_t>
-  TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity) {
+  TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity,
+                          const int32_t* tie_order = nullptr) {
     const auto write = [&](int32_t e, const HeapKey<T>& item) {
       index_out[e * stride] = item.index();
       if (dist2_out) dist2_out[e * stride] = item.dist2();
@@ -250,7 +272,15 @@ struct NeighborHeap {
         }
         ranks_by_first_of_pairs(distance, index, size, rank);
       }
-      for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
+      if (tie_order == nullptr) {
+        for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
+      } else {  // in order in the heap's slots, then the ties ordered
+        HeapKey<T> sorted[kMaxRankedKeys];
+        for (int32_t i = 0; i < size; ++i) sorted[rank[i]] = key.data[i];
+        for (int32_t i = 0; i < size; ++i) key.data[i] = sorted[i];
+        order_ties(tie_order);
+        for (int32_t e = 0; e < size; ++e) write(e, key.data[e]);
+      }
       ranked = true;
     }
 #endif
@@ -267,6 +297,7 @@ struct NeighborHeap {
           key[n] = top;
         }
       }
+      if (tie_order != nullptr) order_ties(tie_order);
       for (int32_t e = 0; e < size; ++e) write(e, key[e]);
     }
     for (int32_t e = size; e < capacity; ++e) {

@@ -508,7 +508,7 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
     at::Tensor no_distances;  // the clipper recomputes distances from coordinates
     // m * k neighbour ids, laid out as Exec prefers (see kColumnMajorNeighbors)
     at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
-    run_knn<Exec, io_t, int32_t>(grid.view<io_t>(), points.data_ptr<io_t>(), /*queries_in_order=*/false,
+    run_knn<Exec, io_t, int32_t>(grid, points.data_ptr<io_t>(), /*queries_in_order=*/false,
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                         /*row_by_query=*/false, Exec::kColumnMajorNeighbors, options.knn, no_distances, neighbors);

@@ -27,12 +27,15 @@ struct Grid {
   at::Tensor dims;           // (B, 3) int32
   at::Tensor cell_offset;    // (B,) int32
   at::Tensor cell_bounds;    // (num_cells, 6) points' dtype, or undefined: with_cell_bounds()
+  at::Tensor tie_order;      // (N,) int32: the caller's row of each sorted point where the points are
+                             // numbered in sorted order, or undefined: the order in which a kNN
+                             // writes points at equal distances (else by original index)
 
   // A copy on the CPU (the double-double pass runs there).
   Grid to_cpu() const {
     const auto cpu = [](const at::Tensor& t) { return t.defined() ? t.to(at::kCPU).contiguous() : t; };
-    return {cpu(sorted_points), cpu(sorted_index), cpu(cell_start),  cpu(origin),
-            cpu(cell_size),     cpu(dims),         cpu(cell_offset), cpu(cell_bounds)};
+    return {cpu(sorted_points), cpu(sorted_index), cpu(cell_start),  cpu(origin),    cpu(cell_size),
+            cpu(dims),          cpu(cell_offset),  cpu(cell_bounds), cpu(tie_order)};
   }
 
   template <typename T>

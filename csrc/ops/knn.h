@@ -30,11 +30,13 @@ struct KnnFunctor {
   const int32_t* order;          // processing order: query id of step t
   T* dist2;                      // (rows, k), or nullptr when only indices are wanted
   index_t* index;                // (rows, k): int64 for the public op, int32 inside Voronoi
+  const int32_t* tie_order;      // (N,) by sorted point, or nullptr: Grid::tie_order
   int32_t k;
   bool queries_in_order;         // queries are stored in processing order (sequential reads)
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
-  int64_t row_stride, column_stride;  // element (row, e) at row * row_stride + e * column_stride
+  bool column_major;             // element (row, e) at row + e * rows, else at row * k + e
+  int64_t rows;
 
   static int64_t scratch_bytes(int64_t k) { return core::ScratchArena::bytes<core::HeapKey<T>>(k); }
   // The heap and one offered candidate per lane.
@@ -49,7 +51,7 @@ struct KnnFunctor {
     const T inf = T(1) / T(0);
     core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
     core::knn_search(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, inf);
-    heap.write_sorted(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride, inf);
+    heap.write_sorted(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride(), inf, tie_order);
   }
 
   // A group of lanes searches query t together; `scratch` is theirs.
@@ -61,14 +63,16 @@ struct KnnFunctor {
     const core::StridedArray<core::HeapKey<T>> offered = scratch.take<core::HeapKey<T>>(Lanes::kCount);
     core::knn_search_cooperative(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, offered, inf,
                                  lanes);
-    heap.write_ranked(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride, inf, lanes);
+    heap.write_ranked(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride(), inf, lanes,
+                      tie_order);
   }
 
   TV_HD int64_t batch_of(int32_t q) const { return query_batch ? query_batch[q] : 0; }
   TV_HD core::Vec3<T> query(int64_t t, int32_t q) const {
     return core::load_vec3(queries + 3 * (queries_in_order ? t : int64_t(q)));
   }
-  TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * row_stride; }
+  TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * (column_major ? 1 : k); }
+  TV_HD int64_t column_stride() const { return column_major ? rows : 1; }
 };
 // Past 128 bytes of kernel parameter nvcc reads a functor's fields at each
 // use instead of once at the kernel's entry (clip_pass.h's
@@ -96,18 +100,17 @@ void launch_knn(int64_t count, int64_t k, Implementation forced, const Launched&
 // queries that `live` says are valid run (the speculative retry pass of
 // recovery.h; its own kernels).
 template <typename Exec, typename T, typename index_t, bool kUpToDeviceCount = false>
-void run_knn(const core::GridView<T>& grid, const T* queries, bool queries_in_order,
+void run_knn(const Grid& grid, const T* queries, bool queries_in_order,
              const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
              bool exclude_self, bool row_by_query, bool column_major, Implementation forced,
              at::Tensor& dist2, at::Tensor& index, const core::DeviceCount& live = {}) {
   using Functor = KnnFunctor<T, index_t>;
-  const int64_t rows = index.numel() / k;
-  const int64_t row_stride = column_major ? 1 : k, column_stride = column_major ? rows : 1;
-  const Functor functor{grid, queries, query_batch, order,
+  const Functor functor{grid.view<T>(), queries, query_batch, order,
                         dist2.defined() ? dist2.data_ptr<T>() : nullptr,
                         index.data_ptr<index_t>(),
-                        static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
-                        row_stride, column_stride};
+                        grid.tie_order.defined() ? grid.tie_order.data_ptr<int32_t>() : nullptr,
+                        static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query, column_major,
+                        index.numel() / k};
   if constexpr (kUpToDeviceCount) {
     launch_knn<Exec, Functor>(count, k, forced, core::up_to_device_count(functor, live));
   } else {
@@ -152,7 +155,7 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   const at::Tensor order = query_order<Exec>(grid, queries, queries_batch, queries_are_points);
   const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
-    run_knn<Exec, scalar_t, int64_t>(grid.view<scalar_t>(), ordered_queries.data_ptr<scalar_t>(),
+    run_knn<Exec, scalar_t, int64_t>(grid, ordered_queries.data_ptr<scalar_t>(),
                             queries_are_points,
                             queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
                             order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,

@@ -132,7 +132,7 @@ void run_speculative_pass(const at::Tensor& points, const at::Tensor& box,
   const int64_t m = cells.size(0);
   at::Tensor no_distances;
   at::Tensor neighbors = at::empty({m, pass.k}, points.options().dtype(at::kInt));
-  run_knn<Exec, io_t, int32_t, true>(grid.view<io_t>(), points.data_ptr<io_t>(), /*queries_in_order=*/false,
+  run_knn<Exec, io_t, int32_t, true>(grid, points.data_ptr<io_t>(), /*queries_in_order=*/false,
                                      batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                                      cells.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
                                      /*row_by_query=*/false, Exec::kColumnMajorNeighbors, options.knn,

@@ -88,6 +88,7 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     const int64_t kept = set_copies_aside<Exec>(grid, sorted_ids);
     out.row_of_position = grid.sorted_index;
     grid.sorted_index = at::Tensor();
+    grid.tie_order = out.row_of_position;  // neighbours at equal distances in the caller's order
     work_points = grid.sorted_points;
     work_batch = batch.has_value() ? c10::optional<at::Tensor>(batch->index_select(0, out.row_of_position))
                                    : c10::nullopt;
