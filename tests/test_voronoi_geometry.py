@@ -42,6 +42,18 @@ def test_lattice_exact(device, dtype, m, cells_impl):
     lattice_expectations(cells, points, [1 / m] * 3, dtype, {torch.float64: 1e-12, torch.float32: 1e-5}[dtype])
 
 
+def test_lattice_cells_do_not_depend_on_the_grid(device, dtype, cells_impl):
+    """Equally distant neighbours (every lattice cell has six) are clipped in
+    the caller's row order, not the grid's: the same cells bit for bit
+    whatever k sets the grid's density."""
+    points = samples.lattice(12, dtype=dtype).to(device)
+    first = run(points, UNIT, k=40)
+    for k in (60, 100, None):
+        again = run(points, UNIT, k=k)
+        for name, a, b in zip(first._fields, first, again):
+            assert torch.equal(a, b), (k, name)
+
+
 def test_lattice_scaled_offset_float64(device, gen):
     """Lattice scaled by 1e-3 and moved to 1e4: relative to the cell size the
     inputs carry ~1e-8 rounding, so the cube volumes hold to ~1e-7 and the
