@@ -9,9 +9,7 @@ single-process call on that whole cloud: in float64 bit for bit for the cells
 that both compute in the same pass (every cell whose neighbours the first
 pass's k covers), otherwise to rounding: a retried cell's tier and precision
 depend on the other cells its pass retries, and they round in another order
-(as the same cell does between two single-process calls with different k); so
-does a cell with neighbours at exactly equal distances (a lattice), which the op
-takes in the order of its grid, and a slab's grid is not the whole cloud's.
+(as the same cell does between two single-process calls with different k).
 
 How: the cloud is cut into slabs along the longest axis of its box, one a
 rank, balanced by count; every point goes to its slab's rank, with a halo of

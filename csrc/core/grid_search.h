@@ -212,6 +212,20 @@ struct NeighborHeap {
     return tie_order[a.index()] < tie_order[b.index()];
   }
 
+  // write(e, keys[e]) for the `size` sorted keys; whether two of them share a distance.
+  template <typename Write>
+  TV_HD bool write_in_order(StridedArray<HeapKey<T>> keys, const Write& write) const {
+    bool tied = false;
+    T previous = T(-1);
+    for (int32_t e = 0; e < size; ++e) {
+      const HeapKey<T> item = keys[e];
+      write(e, item);
+      tied |= item.dist2() == previous;
+      previous = item.dist2();
+    }
+    return tied;
+  }
+
   // Keys sorted by (distance, index): each run at one distance reordered by
   // tie_order (an insertion sort; runs are rare but on lattices).
   TV_HD void order_ties(const int32_t* tie_order) {
@@ -274,12 +288,14 @@ struct NeighborHeap {
       }
       if (tie_order == nullptr) {
         for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
-      } else {  // in order in the heap's slots, then the ties ordered
+      } else {  // sorted in a copy; where two share a distance, again with the ties ordered
         HeapKey<T> sorted[kMaxRankedKeys];
         for (int32_t i = 0; i < size; ++i) sorted[rank[i]] = key.data[i];
-        for (int32_t i = 0; i < size; ++i) key.data[i] = sorted[i];
-        order_ties(tie_order);
-        for (int32_t e = 0; e < size; ++e) write(e, key.data[e]);
+        if (write_in_order(StridedArray<HeapKey<T>>{sorted, 1}, write)) {
+          for (int32_t i = 0; i < size; ++i) key.data[i] = sorted[i];
+          order_ties(tie_order);
+          write_in_order(key, write);
+        }
       }
       ranked = true;
     }
@@ -297,8 +313,10 @@ struct NeighborHeap {
           key[n] = top;
         }
       }
-      if (tie_order != nullptr) order_ties(tie_order);
-      for (int32_t e = 0; e < size; ++e) write(e, key[e]);
+      if (write_in_order(key, write) && tie_order != nullptr) {
+        order_ties(tie_order);
+        write_in_order(key, write);
+      }
     }
     for (int32_t e = size; e < capacity; ++e) {
       index_out[e * stride] = -1;
