@@ -760,3 +760,16 @@ def test_rank_counts_match_a_sort(cpp_program, seed):
     if run.returncode == 77:
         pytest.skip("no AVX2 on this CPU")
     assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="the packed candidate loop is x86 code")
+def test_packed_candidates_match_the_scalar_loop(cpp_program, seed):
+    """The CPU kNN's candidate loop a pack of points at a time (AVX2) leaves
+    the heap exactly as the scalar loop does, in float and float64, for every
+    pack tail, with and without an index array and an excluded point, on
+    random points, lattices and repeated points (tests/offer_packs.cpp)."""
+    program = cpp_program("offer_packs")
+    run = subprocess.run([str(program), str(seed)], capture_output=True, text=True, timeout=300)
+    if run.returncode == 77:
+        pytest.skip("no AVX2 on this CPU")
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]

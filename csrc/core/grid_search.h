@@ -16,6 +16,7 @@
 
 #include "common.h"
 #include "key_ranks.h"
+#include "offer_packs.h"
 
 namespace torchvor {
 namespace core {
@@ -327,7 +328,8 @@ struct NeighborHeap {
 
 // Offer every point of the sorted range [begin, end) to the heap. Two
 // phases: fill the heap, then compare each candidate with the worst key kept
-// in a register (most candidates stop there).
+// in a register (most candidates stop there); on a host with AVX2, a pack
+// of candidates a compare (offer_packs.h).
 template <typename T>
 TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3<T> query,
                        int32_t excluded, NeighborHeap<T>& heap) {
@@ -340,6 +342,12 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
     if (original != excluded) heap.push(candidate(s, original));
   }
   if (s == end) return;
+#if defined(TORCHVOR_HAS_OFFER_PACKS) && !defined(__CUDA_ARCH__)
+  if (cpu_has_avx2()) {
+    offer_packs<T, NeighborHeap<T>, HeapKey<T>>(grid.sorted_points, grid.sorted_index, s, end, query, excluded, heap);
+    return;
+  }
+#endif
   HeapKey<T> worst = heap.key[0];
   for (; s < end; ++s) {
     const T dist2 = squared_distance(load_vec3(grid.sorted_points + 3 * s), query);
