@@ -25,12 +25,14 @@ namespace core {
 // the k of most searches, and is quadratic beyond.
 constexpr int32_t kMaxRankedKeys = 128;
 
-inline bool cpu_has_avx2() {
+// Inlined (a load and a test once the first call has set it): the kNN asks
+// once a row range.
+inline __attribute__((always_inline)) bool cpu_has_avx2() {
   static const bool has = __builtin_cpu_supports("avx2");
   return has;
 }
 
-inline bool cpu_has_avx512() {
+inline __attribute__((always_inline)) bool cpu_has_avx512() {
   static const bool has = __builtin_cpu_supports("avx512f");
   return has;
 }
