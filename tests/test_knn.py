@@ -53,13 +53,21 @@ def assert_exact(result, ref):
     np.testing.assert_array_equal(got_d, ref_d)
 
 
-@pytest.fixture(params=["thread", "cooperative"])
-def knn_impl(request, monkeypatch):
+@pytest.fixture(params=["thread", "cooperative", "streamed"])
+def knn_impl(request, monkeypatch, device):
     """Which implementation searches (TORCHVOR_KNN): one thread per query (the
     CPU's default, and CUDA's for large passes) or a group of lanes per query
     (a warp on CUDA, its default for small passes; one lane on the CPU). The
-    tests that take this fixture run both on every device."""
-    monkeypatch.setenv("TORCHVOR_KNN", request.param)
+    tests that take this fixture run both on every device; "streamed" is the
+    CPU's thread search writing every result by non-temporal stores (as it
+    does results of 32 MiB and more)."""
+    if request.param == "streamed":
+        if device.type != "cpu":
+            pytest.skip("non-temporal row stores are the CPU's")
+        monkeypatch.setenv("TORCHVOR_STREAM_ROWS_BYTES", "0")
+        monkeypatch.setenv("TORCHVOR_KNN", "thread")
+    else:
+        monkeypatch.setenv("TORCHVOR_KNN", request.param)
     return request.param
 
 
@@ -312,7 +320,8 @@ def test_non_contiguous_inputs(device, dtype, gen):
 def test_cooperative_knn_matches_thread_knn(monkeypatch, device, dtype, gen, seed, kind):
     """The two implementations of the search (one thread, or a group of lanes
     per query: csrc/core/grid_search.h) offer the same candidates to the same
-    keys: equal results, bit for bit."""
+    keys: equal results, bit for bit; and so do rows written by non-temporal
+    stores (the CPU's large results; plain stores elsewhere)."""
     batch = query_batch = None
     if kind == "uniform":
         points, queries = rand(3000, gen, dtype, device), rand(500, gen, dtype, device, -0.5, 1.5)
@@ -330,11 +339,13 @@ def test_cooperative_knn_matches_thread_knn(monkeypatch, device, dtype, gen, see
         for args in ((points, k), (points, k, queries)):
             kwargs = {"batch": batch} if len(args) == 2 else {"batch": batch, "query_batch": query_batch}
             results = {}
-            for impl in ("thread", "cooperative"):
-                monkeypatch.setenv("TORCHVOR_KNN", impl)
+            for impl in ("thread", "cooperative", "streamed"):
+                monkeypatch.setenv("TORCHVOR_KNN", "thread" if impl == "streamed" else impl)
+                monkeypatch.setenv("TORCHVOR_STREAM_ROWS_BYTES", "0" if impl == "streamed" else str(1 << 40))
                 results[impl] = torchvor.knn(*args, **kwargs)
-            assert torch.equal(results["thread"].idx, results["cooperative"].idx), (k, len(args))
-            assert torch.equal(results["thread"].dist2, results["cooperative"].dist2), (k, len(args))
+            for impl in ("cooperative", "streamed"):
+                assert torch.equal(results["thread"].idx, results[impl].idx), (impl, k, len(args))
+                assert torch.equal(results["thread"].dist2, results[impl].dist2), (impl, k, len(args))
 
 
 def test_deterministic(device, dtype, gen):

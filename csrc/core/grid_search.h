@@ -17,6 +17,7 @@
 #include "common.h"
 #include "key_ranks.h"
 #include "offer_packs.h"
+#include "stream_stores.h"
 
 namespace torchvor {
 namespace core {
@@ -175,6 +176,20 @@ struct NeighborHeap {
     key[e] = item;
   }
 
+  // Add a candidate to a heap that is not full yet, without order: the heap
+  // order is made once, when the last slot fills (make_heap), where a push
+  // each time sifts up through branches that mispredict. Until then only
+  // the count is read (worst() is read only when full()).
+  TV_HD void fill(HeapKey<T> item) {
+    key[size++] = item;
+    if (size == capacity) make_heap();
+  }
+
+  // Heap order over the `size` keys, bottom-up: a sift_down from each inner node.
+  TV_HD void make_heap() {
+    for (int32_t e = (size - 2) / kArity; size > 1 && e >= 0; --e) sift_down(e, size, key[e]);
+  }
+
   // Replace the root (the worst key) by a better `item`.
   TV_HD void replace_root(HeapKey<T> item) { sift_down(0, size, item); }
 
@@ -213,13 +228,21 @@ struct NeighborHeap {
     return tie_order[a.index()] < tie_order[b.index()];
   }
 
-  // write(e, keys[e]) for the `size` sorted keys; whether two of them share a distance.
+  // Whether two of the `size` sorted keys share a distance.
+  TV_HD bool has_ties() const {
+    for (int32_t e = 1; e < size; ++e) {
+      if (key[e].dist2() == key[e - 1].dist2()) return true;
+    }
+    return false;
+  }
+
+  // write(e, key[e]) for the `size` sorted keys; whether two of them share a distance.
   template <typename Write>
-  TV_HD bool write_in_order(StridedArray<HeapKey<T>> keys, const Write& write) const {
+  TV_HD bool write_in_order(const Write& write) const {
     bool tied = false;
     T previous = T(-1);
     for (int32_t e = 0; e < size; ++e) {
-      const HeapKey<T> item = keys[e];
+      const HeapKey<T> item = key[e];
       write(e, item);
       tied |= item.dist2() == previous;
       previous = item.dist2();
@@ -262,15 +285,20 @@ struct NeighborHeap {
   // Write the keys in increasing order as (dist2, index), padded with
   // (inf, -1), element e at e * stride; `dist2_out` may be null. The heap is
   // consumed. Host: an AVX2 rank count (key_ranks.h), else std::sort;
-  // device: heap sort in place (no extra memory).
+  // device: heap sort in place (no extra memory). `stream` (host, stride 1):
+  // the row goes out by non-temporal stores (stream_stores.h), for results
+  // far larger than the caches.
   template <typename index_t>
   TV_HD void write_sorted(T* dist2_out, index_t* index_out, int64_t stride, T infinity,
-                          const int32_t* tie_order = nullptr) {
+                          const int32_t* tie_order = nullptr, bool stream = false) {
     const auto write = [&](int32_t e, const HeapKey<T>& item) {
       index_out[e * stride] = item.index();
       if (dist2_out) dist2_out[e * stride] = item.dist2();
     };
-    bool ranked = false;
+    const auto pad = [&] {
+      for (int32_t e = size; e < capacity; ++e) write(e, HeapKey<T>::make(infinity, -1));
+    };
+    bool sorted = false;
 #if defined(TORCHVOR_HAS_KEY_RANKS) && !defined(__CUDA_ARCH__)
     if (key.stride == 1 && size <= kMaxRankedKeys && cpu_has_avx2()) {
       int32_t rank[kMaxRankedKeys];
@@ -287,42 +315,45 @@ struct NeighborHeap {
         }
         ranks_by_first_of_pairs(distance, index, size, rank);
       }
-      if (tie_order == nullptr) {
+      if (tie_order == nullptr && !stream) {  // each key straight to its place
         for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
-      } else {  // sorted in a copy; where two share a distance, again with the ties ordered
-        HeapKey<T> sorted[kMaxRankedKeys];
-        for (int32_t i = 0; i < size; ++i) sorted[rank[i]] = key.data[i];
-        if (write_in_order(StridedArray<HeapKey<T>>{sorted, 1}, write)) {
-          for (int32_t i = 0; i < size; ++i) key.data[i] = sorted[i];
-          order_ties(tie_order);
-          write_in_order(key, write);
-        }
+        pad();
+        return;
       }
-      ranked = true;
+      HeapKey<T> in_order[kMaxRankedKeys];
+      for (int32_t i = 0; i < size; ++i) in_order[rank[i]] = key.data[i];
+      for (int32_t i = 0; i < size; ++i) key.data[i] = in_order[i];
+      sorted = true;
     }
 #endif
-    if (!ranked) {
+    if (!sorted) {
 #if !defined(__CUDA_ARCH__)
       if (key.stride == 1) {
         std::sort(key.data, key.data + size);
       } else
 #endif
       {
+        if (!full()) make_heap();  // fill() leaves a heap that never filled unordered
         for (int32_t n = size - 1; n > 0; --n) {
           const HeapKey<T> top = key[0];
           sift_down(0, n, key[n]);
           key[n] = top;
         }
       }
-      if (write_in_order(key, write) && tie_order != nullptr) {
-        order_ties(tie_order);
-        write_in_order(key, write);
-      }
     }
-    for (int32_t e = size; e < capacity; ++e) {
-      index_out[e * stride] = -1;
-      if (dist2_out) dist2_out[e * stride] = infinity;
+#if defined(TORCHVOR_HAS_STREAM_STORES) && !defined(__CUDA_ARCH__)
+    if (stream && stride == 1 && key.stride == 1) {  // each element stored once
+      if (tie_order != nullptr && has_ties()) order_ties(tie_order);
+      stream_row(key.data, size, capacity, dist2_out, index_out, infinity);
+      return;
     }
+#endif
+    // Where two keys share a distance, again with the ties ordered.
+    if (write_in_order(write) && tie_order != nullptr) {
+      order_ties(tie_order);
+      write_in_order(write);
+    }
+    pad();
   }
 };
 
@@ -339,7 +370,7 @@ TV_HD void offer_range(const GridView<T>& grid, int32_t begin, int32_t end, Vec3
   int32_t s = begin;
   for (; s < end && !heap.full(); ++s) {
     const int32_t original = grid.original_index(s);
-    if (original != excluded) heap.push(candidate(s, original));
+    if (original != excluded) heap.fill(candidate(s, original));
   }
   if (s == end) return;
 #if defined(TORCHVOR_HAS_OFFER_PACKS) && !defined(__CUDA_ARCH__)

@@ -511,7 +511,8 @@ void run_pass(const at::Tensor& points, const at::Tensor& box,
     run_knn<Exec, io_t, int32_t>(grid, points.data_ptr<io_t>(), /*queries_in_order=*/false,
                         batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                         part.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
-                        /*row_by_query=*/false, Exec::kColumnMajorNeighbors, options.knn, no_distances, neighbors);
+                        /*row_by_query=*/false, Exec::kColumnMajorNeighbors, /*stream_rows=*/false, options.knn,
+                        no_distances, neighbors);
     const Grid* vertex_balls = pass.vertex_balls ? &swept : nullptr;
     // Float32 points are clipped in float32 or float64; float64 points only
     // in float64 (`if constexpr`: no float32 cells of float64 points are

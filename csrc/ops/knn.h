@@ -35,7 +35,9 @@ struct KnnFunctor {
   bool queries_in_order;         // queries are stored in processing order (sequential reads)
   bool exclude_self;             // queries are the points: skip point q for query q
   bool row_by_query;             // row = query id (else row = t, chunk-local)
-  bool column_major;             // element (row, e) at row + e * rows, else at row * k + e
+  // Element (row, e) at row * k + e (kRows, kStreamedRows: the host writes
+  // each row by non-temporal stores, stream_stores.h) or row + e * rows.
+  enum class Layout : uint8_t { kRows, kStreamedRows, kColumns } layout;
   int64_t rows;
 
   static int64_t scratch_bytes(int64_t k) { return core::ScratchArena::bytes<core::HeapKey<T>>(k); }
@@ -51,7 +53,8 @@ struct KnnFunctor {
     const T inf = T(1) / T(0);
     core::NeighborHeap<T> heap{scratch.take<core::HeapKey<T>>(k), k, 0};
     core::knn_search(grid, batch_of(q), query(t, q), exclude_self ? q : -1, heap, inf);
-    heap.write_sorted(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride(), inf, tie_order);
+    heap.write_sorted(dist2 ? dist2 + row(t, q) : nullptr, index + row(t, q), column_stride(), inf, tie_order,
+                      layout == Layout::kStreamedRows);
   }
 
   // A group of lanes searches query t together; `scratch` is theirs.
@@ -71,8 +74,10 @@ struct KnnFunctor {
   TV_HD core::Vec3<T> query(int64_t t, int32_t q) const {
     return core::load_vec3(queries + 3 * (queries_in_order ? t : int64_t(q)));
   }
-  TV_HD int64_t row(int64_t t, int32_t q) const { return (row_by_query ? q : t) * (column_major ? 1 : k); }
-  TV_HD int64_t column_stride() const { return column_major ? rows : 1; }
+  TV_HD int64_t row(int64_t t, int32_t q) const {
+    return (row_by_query ? q : t) * (layout == Layout::kColumns ? 1 : k);
+  }
+  TV_HD int64_t column_stride() const { return layout == Layout::kColumns ? rows : 1; }
 };
 // Past 128 bytes of kernel parameter nvcc reads a functor's fields at each
 // use instead of once at the kernel's entry (clip_pass.h's
@@ -102,14 +107,17 @@ void launch_knn(int64_t count, int64_t k, Implementation forced, const Launched&
 template <typename Exec, typename T, typename index_t, bool kUpToDeviceCount = false>
 void run_knn(const Grid& grid, const T* queries, bool queries_in_order,
              const int64_t* query_batch, const int32_t* order, int64_t count, int64_t k,
-             bool exclude_self, bool row_by_query, bool column_major, Implementation forced,
+             bool exclude_self, bool row_by_query, bool column_major, bool stream_rows, Implementation forced,
              at::Tensor& dist2, at::Tensor& index, const core::DeviceCount& live = {}) {
   using Functor = KnnFunctor<T, index_t>;
   const Functor functor{grid.view<T>(), queries, query_batch, order,
                         dist2.defined() ? dist2.data_ptr<T>() : nullptr,
                         index.data_ptr<index_t>(),
                         grid.tie_order.defined() ? grid.tie_order.data_ptr<int32_t>() : nullptr,
-                        static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query, column_major,
+                        static_cast<int32_t>(k), queries_in_order, exclude_self, row_by_query,
+                        column_major  ? Functor::Layout::kColumns
+                        : stream_rows ? Functor::Layout::kStreamedRows
+                                      : Functor::Layout::kRows,
                         index.numel() / k};
   if constexpr (kUpToDeviceCount) {
     launch_knn<Exec, Functor>(count, k, forced, core::up_to_device_count(functor, live));
@@ -154,12 +162,15 @@ std::tuple<at::Tensor, at::Tensor> knn_forward(const at::Tensor& points_in,
   const bool queries_are_points = exclude_self && !points_batch.has_value();
   const at::Tensor order = query_order<Exec>(grid, queries, queries_batch, queries_are_points);
   const at::Tensor ordered_queries = queries_are_points ? grid.sorted_points : queries;
+  // Rows land in caller order, scattered over the result: past the caches'
+  // size, non-temporal stores skip reading in each line they fill.
+  const bool stream_rows = (dist2.nbytes() + index.nbytes()) >= size_t(options.stream_rows_bytes);
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::knn", [&] {
     run_knn<Exec, scalar_t, int64_t>(grid, ordered_queries.data_ptr<scalar_t>(),
                             queries_are_points,
                             queries_batch.has_value() ? queries_batch->data_ptr<int64_t>() : nullptr,
                             order.data_ptr<int32_t>(), m, k, exclude_self, /*row_by_query=*/true,
-                            /*column_major=*/false, options.knn, dist2, index);
+                            /*column_major=*/false, stream_rows, options.knn, dist2, index);
   });
   return {dist2, index};
 }

@@ -30,6 +30,8 @@ struct Options {
   double points_per_cell_scale = 1.0;  // TORCHVOR_POINTS_PER_CELL_SCALE > 0: multiplies the grid's density rule
   int64_t cell_blocks_per_sm = 0;   // TORCHVOR_CELL_BLOCKS_PER_SM >= 1: CUDA thread-cell residency (0: the rule)
   bool cpu_baseline_isa = false;    // TORCHVOR_CPU_ISA=baseline: the CPU clip loop without its AVX2+FMA copy
+  int64_t stream_rows_bytes = int64_t(32) << 20;  // TORCHVOR_STREAM_ROWS_BYTES >= 0: the CPU kNN's results from
+                                                   // this size are written by non-temporal stores
 
   // Fault injection and small-input coverage, for the tests only.
   struct Testing {

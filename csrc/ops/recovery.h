@@ -135,8 +135,8 @@ void run_speculative_pass(const at::Tensor& points, const at::Tensor& box,
   run_knn<Exec, io_t, int32_t, true>(grid, points.data_ptr<io_t>(), /*queries_in_order=*/false,
                                      batch.has_value() ? batch->data_ptr<int64_t>() : nullptr,
                                      cells.data_ptr<int32_t>(), m, pass.k, /*exclude_self=*/true,
-                                     /*row_by_query=*/false, Exec::kColumnMajorNeighbors, options.knn,
-                                     no_distances, neighbors, live);
+                                     /*row_by_query=*/false, Exec::kColumnMajorNeighbors,
+                                     /*stream_rows=*/false, options.knn, no_distances, neighbors, live);
   clip_chunk_up_to_device_count<Exec, io_t>(points, box, batch, cells, neighbors, neighbor_spread, live, options,
                                             out);
 }
