@@ -176,13 +176,18 @@ struct NeighborHeap {
     key[e] = item;
   }
 
-  // Add a candidate to a heap that is not full yet, without order: the heap
-  // order is made once, when the last slot fills (make_heap), where a push
-  // each time sifts up through branches that mispredict. Until then only
-  // the count is read (worst() is read only when full()).
+  // Add a candidate to a heap that is not full yet. Host: without order,
+  // the heap order made once, when the last slot fills (make_heap), where a
+  // push each time sifts up through branches that mispredict; until then
+  // only the count is read (worst() is read only when full()). The device
+  // pushes: there the one make_heap costs more than the pushes.
   TV_HD void fill(HeapKey<T> item) {
+#if defined(__CUDA_ARCH__)
+    push(item);
+#else
     key[size++] = item;
     if (size == capacity) make_heap();
+#endif
   }
 
   // Heap order over the `size` keys, bottom-up: a sift_down from each inner node.
@@ -333,7 +338,7 @@ struct NeighborHeap {
       } else
 #endif
       {
-        if (!full()) make_heap();  // fill() leaves a heap that never filled unordered
+        if (!full()) make_heap();  // the host's fill() leaves a heap that never filled unordered
         for (int32_t n = size - 1; n > 0; --n) {
           const HeapKey<T> top = key[0];
           sift_down(0, n, key[n]);
