@@ -348,6 +348,30 @@ def test_cooperative_knn_matches_thread_knn(monkeypatch, device, dtype, gen, see
                 assert torch.equal(results["thread"].dist2, results[impl].dist2), (impl, k, len(args))
 
 
+def test_streamed_rows_across_threads(monkeypatch, dtype, gen):
+    """Rows written by non-temporal stores (the CPU's results of 32 MiB and
+    more), by every thread of a pass over enough queries to split it: the
+    same result as plain stores, bit for bit, indices alone too, and with
+    rows padded where a batch element has fewer than k points."""
+    points = rand(60_000, gen, dtype, "cpu")
+    queries = rand(20_000, gen, dtype, "cpu", -0.2, 1.2)
+    batch = torch.cat([torch.zeros(59_990, dtype=torch.long), torch.ones(10, dtype=torch.long)])
+    query_batch = torch.cat([torch.zeros(19_000, dtype=torch.long), torch.ones(1_000, dtype=torch.long)])
+    calls = [lambda: torchvor.knn(points, 24),
+             lambda: torchvor.knn(points, 24, queries, batch=batch, query_batch=query_batch),
+             lambda: torchvor.knn_graph(points, 12)]
+    for call in calls:
+        results = []
+        for threshold in (str(1 << 40), "0"):
+            monkeypatch.setenv("TORCHVOR_STREAM_ROWS_BYTES", threshold)
+            results.append(call())
+        plain, streamed = (r if isinstance(r, tuple) else (r,) for r in results)
+        assert all(torch.equal(a, b) for a, b in zip(plain, streamed))
+    padded = torchvor.knn(points, 24, queries, batch=batch, query_batch=query_batch)  # streamed
+    assert torch.all(padded.idx[19_000:, 10:] == -1) and torch.all(torch.isinf(padded.dist2[19_000:, 10:]))
+    assert torch.all(padded.idx[19_000:, :10] >= 59_990)
+
+
 def test_deterministic(device, dtype, gen):
     points = samples.clustered(3000, seed=int(torch.randint(1 << 30, (1,), generator=gen)), dtype=dtype)
     points = points.to(device)
