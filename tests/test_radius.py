@@ -66,6 +66,21 @@ def test_uniform_points(device, dtype, gen, r):
     check_sorted(result, 600)
 
 
+@pytest.mark.parametrize("r", [1.5, 3.2])
+def test_lattice_ties_sorted(device, dtype, gen, r):
+    """An 8^3 integer lattice in shuffled order: every list repeats distances
+    and is ordered by (distance, point index); at r = 3.2 an inner point's
+    list holds more than 128 points (past the host's rank count)."""
+    axis = torch.arange(8, dtype=dtype)
+    lattice = torch.cartesian_prod(axis, axis, axis)
+    points = lattice[torch.randperm(len(lattice), generator=gen)].to(device)
+    result = torchvor.radius(points, r)
+    check_against_brute_force(result, points, points, r, exclude_self=True)
+    check_sorted(result, len(points))
+    if r > 3:
+        assert int(torch.bincount(result.edge_index[1].cpu()).max()) > 128
+
+
 def test_against_ckdtree_query_pairs(device, gen):
     from scipy.spatial import cKDTree
 

@@ -147,6 +147,27 @@ template <> struct HeapKey<double> {
 static_assert(sizeof(HeapKey<double>) == 16 && alignof(HeapKey<double>) == 8,
               "the host's and the device's float64 keys must lay out the scratch alike");
 
+#if defined(TORCHVOR_HAS_KEY_RANKS) && !defined(__CUDA_ARCH__)
+// Host, AVX2 (the caller checks cpu_has_avx2()): the rank of each of n <=
+// kMaxRankedKeys distinct keys, its place in increasing order.
+template <typename T>
+void heap_key_ranks(const HeapKey<T>* keys, int32_t n, int32_t* rank) {
+  if constexpr (std::is_same<T, float>::value) {
+    // float keys are one uint64 with a clear top bit: distinct and signed-comparable
+    key_ranks(reinterpret_cast<const int64_t*>(keys), n, rank);
+  } else {
+    // double keys: the distance's bits (non-negative: signed-comparable), then the index
+    int64_t distance[kMaxRankedKeys], index[kMaxRankedKeys];
+    for (int32_t i = 0; i < n; ++i) {
+      const double d = keys[i].dist2();
+      memcpy(&distance[i], &d, sizeof(int64_t));
+      index[i] = keys[i].index();
+    }
+    ranks_by_first_of_pairs(distance, index, n, rank);
+  }
+}
+#endif
+
 // Max-heap of candidate keys: the root is the worst of the k best so far.
 // Four children per node: half the depth of a binary heap, and the children
 // of a node share a cache line on the host. The larger-child choice is a
@@ -307,19 +328,7 @@ struct NeighborHeap {
 #if defined(TORCHVOR_HAS_KEY_RANKS) && !defined(__CUDA_ARCH__)
     if (key.stride == 1 && size <= kMaxRankedKeys && cpu_has_avx2()) {
       int32_t rank[kMaxRankedKeys];
-      if constexpr (std::is_same<T, float>::value) {
-        // float keys are one uint64 with a clear top bit: distinct and signed-comparable
-        key_ranks(reinterpret_cast<const int64_t*>(key.data), size, rank);
-      } else {
-        // double keys: the distance's bits (non-negative: signed-comparable), then the index
-        int64_t distance[kMaxRankedKeys], index[kMaxRankedKeys];
-        for (int32_t i = 0; i < size; ++i) {
-          const double d = key.data[i].dist2();
-          memcpy(&distance[i], &d, sizeof(int64_t));
-          index[i] = key.data[i].index();
-        }
-        ranks_by_first_of_pairs(distance, index, size, rank);
-      }
+      heap_key_ranks(key.data, size, rank);
       if (tie_order == nullptr && !stream) {  // each key straight to its place
         for (int32_t i = 0; i < size; ++i) write(rank[i], key.data[i]);
         pad();
