@@ -63,8 +63,8 @@ def main():
     device, dtype = common.setup(args)
     sizes = args.sizes or [100_000, 1_000_000]
     notes = [f"points in the unit cube, {args.dtype}, default k (the pilot's); median of {args.repeats} runs "
-             f"after {args.warmup} warm-up run(s). backward: forward + backward of volume.sum(), "
-             f"less the forward's median."]
+             f"after {args.warmup} warm-up run(s). backward: forward + backward of volume.sum() "
+             f"(centroid backward: of centroid.sum()), less the forward's median."]
     rows = []
     for kind in args.kinds.split(","):
         for n in sizes:
@@ -77,8 +77,13 @@ def main():
             leaf = points.detach().requires_grad_()
             backward = common.time_fn(lambda: torch.autograd.grad(torchvor.voronoi(leaf, UNIT).volume.sum(), leaf),
                                       device, args.warmup, args.repeats) - cells
+            # the centroid's gradient needs the faces' moments too
+            centroid_backward = common.time_fn(
+                lambda: torch.autograd.grad(torchvor.voronoi(leaf, UNIT).centroid.sum(), leaf),
+                device, args.warmup, args.repeats) - cells
             common.log(f"{kind} n={n}: voronoi {common.fmt_s(cells)}, voronoi_graph {common.fmt_s(graph)}, "
-                       f"backward of volume.sum() {common.fmt_s(backward)}")
+                       f"backward of volume.sum() {common.fmt_s(backward)}, "
+                       f"of centroid.sum() {common.fmt_s(centroid_backward)}")
             if args.profile and n >= 0.99 * max(sizes):
                 profile(points, leaf, device, f"{kind} n={n}")
             voro = voro_faces(points) if args.voro else None
@@ -86,10 +91,12 @@ def main():
                 common.log(f"{kind} n={n}: voro++ faces {common.fmt_s(voro)}")
             rows.append([kind, common.npoints_label(n), f"{edges / n:.2f}", common.fmt_s(cells), common.fmt_s(graph),
                          common.fmt_ratio(graph / cells), common.fmt_s(backward), common.fmt_ratio(backward / cells),
+                         common.fmt_s(centroid_backward), common.fmt_ratio(centroid_backward / cells),
                          common.fmt_s(voro), common.fmt_ratio(voro / graph if voro else None)])
             points = None
     common.print_results("Voronoi graph", ["points", "n", "edges a point", "voronoi s", "voronoi_graph s",
-                                           "graph / cells", "backward s", "backward / cells", "voro++ faces s",
+                                           "graph / cells", "backward s", "backward / cells",
+                                           "centroid backward s", "centroid backward / cells", "voro++ faces s",
                                            "graph speed-up vs voro++"], rows, notes)
 
 

@@ -96,8 +96,14 @@ for step in "${@:-cudatests}"; do
         (cd /tmp && PYTHONPATH="$BASELINE" python3 "$REPO/benchmarks/bench_power.py" --device cuda \
           --sizes ${POWER_SIZES:-1M,10M} --repeats 3) 2>&1 | tee "$OUT/bench_power_baseline.log"
       fi ;;
-    graph)  # voronoi_graph and the cells' backward against voronoi (1M, 10M blue and white)
-      python3 benchmarks/bench_graph.py --device cuda --sizes 1M,10M --repeats 3 --profile 2>&1 | tee "$OUT/bench_graph.log" ;;
+    graph)  # voronoi_graph and the cells' backward against voronoi (GRAPH_SIZES, default 1M,10M, blue and white);
+            # with BASELINE, the baseline's too, once it is built
+      python3 benchmarks/bench_graph.py --device cuda --sizes ${GRAPH_SIZES:-1M,10M} --repeats 3 --profile 2>&1 | tee "$OUT/bench_graph.log"
+      if [ -n "${BASELINE:-}" ]; then
+        wait
+        (cd /tmp && PYTHONPATH="$BASELINE" python3 "$REPO/benchmarks/bench_graph.py" --device cuda \
+          --sizes ${GRAPH_SIZES:-1M,10M} --repeats 3) 2>&1 | tee "$OUT/bench_graph_baseline.log"
+      fi ;;
     compare)
       wait
       [ "$(cat "$OUT/baseline_build.rc" 2>/dev/null)" = 0 ] || { echo "baseline build failed"; tail -30 "$OUT/baseline_build.log"; status=1; continue; }

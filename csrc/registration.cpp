@@ -39,6 +39,13 @@ TORCH_LIBRARY(torchvor, m) {
       "int memory_budget=1073741824, bool moments=False) -> (Tensor volume, Tensor centroid, "
       "Tensor second_moment, Tensor status, Tensor neighbors_needed, Tensor radius, Tensor edge_index, Tensor face_area, "
       "Tensor face_centroid, Tensor wall_area, Tensor face_moments)");
+  // voronoi_cells' backward: dL/dpoints (N, 3) float64 through the faces of
+  // the same cells, from upstream (N, 5) float64, each cell's dL/dvolume,
+  // dL/d(first moment about its point) (3) and dL/dsecond_moment; moments:
+  // the last four may be nonzero (ops/voronoi_graph.h).
+  m.def(
+      "voronoi_cells_backward(Tensor points, Tensor box, Tensor? batch, int? k, int memory_budget, "
+      "Tensor upstream, bool moments) -> Tensor");
   // The same cells in the op's grid order (cells of nearby points in nearby
   // rows), with order (N,) int64: row i is the cell of points[order[i]]. It
   // skips the scattered gather to the caller's rows; torchvor.lloyd keeps its

@@ -172,8 +172,9 @@ torch.library.register_autograd("torchvor::voronoi_graph", _no_backward, setup_c
 
 # The gradients of voronoi_cells' volume, centroid and second moment with
 # respect to the points (../shared/design GRADIENTS.md): each face moves with
-# the points it bisects, the walls stay. The backward recomputes the cells'
-# faces with their moments (the same cells: the passes are deterministic).
+# the points it bisects, the walls stay. The backward recomputes the cells
+# (the same cells: the passes are deterministic) and sums each face's terms
+# into its cells' points as it goes (torchvor::voronoi_cells_backward).
 def _cells_setup_context(ctx, inputs, output) -> None:
     points, box, batch, k, memory_budget, *rows = inputs
     volume, centroid, _second_moment, status, neighbors_needed, radius = output
@@ -194,25 +195,21 @@ def _cells_backward(ctx, grad_volume, grad_centroid, grad_second_moment, _grad_s
         grad_volume, grad_centroid, grad_second_moment = (
             None if grad is None else grad.new_zeros((n, *grad.shape[1:])).index_add(0, rows, grad)
             for grad in (grad_volume, grad_centroid, grad_second_moment))
-    faces = torch.ops.torchvor.voronoi_graph.default(points.detach(), box, batch, ctx.k, ctx.memory_budget, True)
-    edge_index, area, face_centroid, _wall_area, moments = faces[6:]
-    grad = _cell_gradients(points.detach(), volume.detach(), centroid.detach(), edge_index, area, face_centroid,
-                           moments, grad_volume, grad_centroid, grad_second_moment)
-    return grad.to(points.dtype), None, None, None, None, None
+    upstream, own = _cell_upstream(points.detach(), volume.detach(), centroid.detach(),
+                                   grad_volume, grad_centroid, grad_second_moment)
+    moments = grad_centroid is not None or grad_second_moment is not None
+    faces = torch.ops.torchvor.voronoi_cells_backward.default(points.detach(), box, batch, ctx.k, ctx.memory_budget,
+                                                              upstream, moments)
+    return (faces + own).to(points.dtype), None, None, None, None, None
 
 
-def _cell_gradients(points, volume, centroid, edge_index, area, face_centroid, moments,
-                    grad_volume, grad_centroid, grad_second_moment) -> torch.Tensor:
-    """d(volume, centroid, second moment)/d points contracted with their output
-    gradients (None: zero), in float64. For a face of cells i and j (area a,
-    centroid c, d = |x_j - x_i|, w_i = c - x_i, w_j = c - x_j; S and T its
-    moments u u^T and |u|^2 u, u = y - c), moving x_j moves it by
-    (x_j - y) . dx_j / d, and moving x_i by (y - x_i) . dx_i / d:
-    volume: dm_i = (a / d) (-w_j . dx_j + w_i . dx_i);
-    first moment about x_i (M): dM_i = -(S + a w_i w_j^T) dx_j / d + (S + a w_i w_i^T) dx_i / d;
-    centroid: dc_i = (dM_i - (c_i - x_i) dm_i) / m_i;
-    second moment (I): dI_i = -(R + Q w_j) . dx_j / d + (R + Q w_i) . dx_i / d - 2 m_i (c_i - x_i) . dx_i,
-    Q = tr S + a |w_i|^2, R = T + 2 S w_i."""
+def _cell_upstream(points, volume, centroid, grad_volume, grad_centroid, grad_second_moment):
+    """The rows voronoi_cells_backward takes, (N, 5) float64: each cell's dL/dm
+    (the centroid's share included), dL/dM (M the first moment about the
+    point) and dL/dI, from the outputs' gradients (None: zero); and the cells'
+    own term of the second moment, -2 g_I m_i (c_i - x_i) (N, 3), which no
+    face carries. The centroid c = x + M / m gives dL/dM = g_c / m and
+    dL/dm = g_m - g_c . (c - x) / m; empty or failed cells (m not > 0) none."""
     x = points.double()
     n = x.shape[0]
     zeros = x.new_zeros
@@ -223,33 +220,22 @@ def _cell_gradients(points, volume, centroid, edge_index, area, face_centroid, m
     offset = centroid.double() - x  # c_i - x_i
     filled = m > 0
     safe_m = torch.where(filled, m, torch.ones_like(m))
-    g_moment = torch.where(filled[:, None], g_c / safe_m[:, None], zeros(n, 3))  # dL/dM_i
+    g_moment = torch.where(filled[:, None], g_c / safe_m[:, None], zeros(n, 3))
     g_m = g_m - torch.where(filled, (g_c * offset).sum(1) / safe_m, zeros(n))
-    grad = zeros(n, 3)
-    # the cells' own term of the second moment (the integrand's dependence on x_i)
-    grad -= (2 * g_i * torch.where(filled, m, zeros(n)))[:, None] * torch.nan_to_num(offset)
-    j, i = edge_index
-    a = area.double()
-    c = face_centroid.double()
-    d = (x[j] - x[i]).norm(dim=1)
-    w_i, w_j = c - x[i], c - x[j]
-    s = moments.double()  # S as xx, yy, zz, xy, xz, yz, then T
+    own = -(2 * g_i * torch.where(filled, m, zeros(n)))[:, None] * torch.nan_to_num(offset)
+    return torch.cat([g_m[:, None], g_moment, g_i[:, None]], 1), own
 
-    def S_times(v):  # S v for each edge, elementwise (a batched matmul of 3 x 3 blocks is far slower)
-        return torch.stack([s[:, 0] * v[:, 0] + s[:, 3] * v[:, 1] + s[:, 4] * v[:, 2],
-                            s[:, 3] * v[:, 0] + s[:, 1] * v[:, 1] + s[:, 5] * v[:, 2],
-                            s[:, 4] * v[:, 0] + s[:, 5] * v[:, 1] + s[:, 2] * v[:, 2]], 1)
 
-    T = s[:, 6:9]
-    G = g_moment[i]
-    SG = S_times(G)
-    Gw = (G * w_i).sum(1, keepdim=True)
-    Q = (s[:, 0] + s[:, 1] + s[:, 2] + a * (w_i * w_i).sum(1))[:, None]
-    R = T + 2 * S_times(w_i)
-    per_d = (1 / d)[:, None]
-    to_j = per_d * (-(g_m[i] * a)[:, None] * w_j - SG - a[:, None] * Gw * w_j - g_i[i][:, None] * (R + Q * w_j))
-    to_i = per_d * ((g_m[i] * a)[:, None] * w_i + SG + a[:, None] * Gw * w_i + g_i[i][:, None] * (R + Q * w_i))
-    return grad.index_add(0, j, to_j).index_add(0, i, to_i)
+@torch.library.register_fake("torchvor::voronoi_cells_backward")
+def _voronoi_cells_backward_fake(points, box, batch, k, memory_budget, upstream, moments):
+    return points.new_empty((points.shape[0], 3), dtype=torch.float64)
+
+
+def _gradient_only(ctx, inputs, output) -> None:
+    ctx.mark_non_differentiable(output)
+
+
+torch.library.register_autograd("torchvor::voronoi_cells_backward", _no_backward, setup_context=_gradient_only)
 
 
 torch.library.register_autograd("torchvor::voronoi_cells", _cells_backward, setup_context=_cells_setup_context)

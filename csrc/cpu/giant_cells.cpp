@@ -40,10 +40,7 @@ int emit_faces(const core::UnboundedCell& unbounded, const io_t* points, int32_t
     }
     return core::kNoFace;
   };
-  const auto emit = [&](int slot, int32_t target, const core::Face<T>& face) {
-    store_face(to, step, slot, target, seed, face);
-  };
-  return emit_cell_faces(to, unbounded, target_of, emit);
+  return emit_cell_faces(to, unbounded, target_of, step, cell, points, seed);
 }
 
 // Cell `cell` (a position) against its cloud's points, nearest first.

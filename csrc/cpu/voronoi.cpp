@@ -35,9 +35,16 @@ ops::GraphOutputs voronoi_graph_cpu(const at::Tensor& points, const at::Tensor& 
   return ops::voronoi_graph_forward<CpuExec>(points, box, batch, k, memory_budget, moments);
 }
 
+at::Tensor voronoi_cells_backward_cpu(const at::Tensor& points, const at::Tensor& box,
+                                      const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                                      int64_t memory_budget, const at::Tensor& upstream, bool moments) {
+  return ops::voronoi_cells_backward<CpuExec>(points, box, batch, k, memory_budget, upstream, moments);
+}
+
 TORCH_LIBRARY_IMPL(torchvor, CPU, m) {
   m.impl("voronoi_cells", &voronoi_cells_cpu);
   m.impl("voronoi_graph", &voronoi_graph_cpu);
+  m.impl("voronoi_cells_backward", &voronoi_cells_backward_cpu);
   m.impl("voronoi_cells_grid_order", &voronoi_cells_grid_order_cpu);
 }
 

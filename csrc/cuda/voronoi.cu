@@ -50,9 +50,18 @@ ops::GraphOutputs voronoi_graph_cuda(const at::Tensor& points, const at::Tensor&
   return ops::voronoi_graph_forward<CudaExec>(points, box, batch, k, memory_budget, moments);
 }
 
+at::Tensor voronoi_cells_backward_cuda(const at::Tensor& points, const at::Tensor& box,
+                                       const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                                       int64_t memory_budget, const at::Tensor& upstream, bool moments) {
+  c10::cuda::OptionalCUDAGuard guard;
+  if (points.is_cuda()) guard.set_device(points.device());
+  return ops::voronoi_cells_backward<CudaExec>(points, box, batch, k, memory_budget, upstream, moments);
+}
+
 TORCH_LIBRARY_IMPL(torchvor, CUDA, m) {
   m.impl("voronoi_cells", &voronoi_cells_cuda);
   m.impl("voronoi_graph", &voronoi_graph_cuda);
+  m.impl("voronoi_cells_backward", &voronoi_cells_backward_cuda);
   m.impl("voronoi_cells_grid_order", &voronoi_cells_grid_order_cuda);
 }
 

@@ -43,12 +43,65 @@ struct FaceOutputs {
   io_t* centroid;         // (E, 3)
   io_t* wall_area;        // by record, 6 each: -x, +x, -y, +y, -z, +z (zero where none)
   io_t* moments;          // (E, 9) core::Face's second (6) and third (3) moments, or nullptr: none asked
+  // voronoi_cells' backward instead of faces (FaceGradient): each cell's
+  // output gradients by position, and where each computed cell's point
+  // gets its faces' terms (by record, 3 each); nullptr: not the backward.
+  const double* upstream;  // (N, 5): FaceGradient's g_m, g_M (3), g_I
+  double* gradient;
+  bool gradient_moments;   // the faces' moments are needed (g_M or g_I may be nonzero)
+};
+
+// voronoi_cells' backward, summed over one cell's faces with no atomics: the
+// terms of dL/dx_s (s the cell's point) from the outputs of cell s and of
+// each neighbour n across a face (both cells compute the face; the rows of
+// `upstream` by position are dL/dm, dL/dM and dL/dI of a cell's volume m,
+// first moment M about its point and second moment I, with the centroid's
+// share already in dL/dm and dL/dM). Per face (area a, centroid c, d =
+// |x_n - x_s|, w_s = c - x_s, w_n = c - x_n, moments S and T about c),
+// GRADIENTS.md's formulas give
+//   from s: (a g_m w_s + S g_M + a (g_M . w_s) w_s + g_I (R_s + Q_s w_s)) / d,
+//   from n: -(a g_m w_s + S g_M + a (g_M . w_n) w_s + g_I (R_n + Q_n w_s)) / d,
+// Q = tr S + a |w|^2, R = T + 2 S w (each with its cell's g and w). The
+// cell's own term of I (the integrand's x_s) is the caller's.
+struct FaceGradient {
+  const double* upstream;
+  const double* own;  // upstream's row of the cell
+  core::Vec3<double> sum = {0.0, 0.0, 0.0};
+
+  // The face across to neighbour `n` at offset `r` = x_n - x_s (kMoments:
+  // the face carries its moments; needed where `moments`).
+  template <bool kMoments, typename T>
+  TV_HD void add(int32_t n, core::Vec3<T> r, const core::Face<T>& face) {
+    const auto wide = [](core::Vec3<T> v) {
+      return core::Vec3<double>{static_cast<double>(v.x), static_cast<double>(v.y), static_cast<double>(v.z)};
+    };
+    const double a = static_cast<double>(face.area);
+    const core::Vec3<double> offset = wide(r), w_s = wide(face.centroid), w_n = w_s - offset;
+    const double* other = upstream + 5 * int64_t(n);
+    core::Vec3<double> term = (a * (own[0] - other[0])) * w_s;
+    if constexpr (kMoments) {
+      double S[6];
+      for (int m = 0; m < 6; ++m) S[m] = static_cast<double>(face.second[m]);
+      const core::Vec3<double> T3 = wide(face.third);
+      const auto S_times = [&](core::Vec3<double> v) {
+        return core::Vec3<double>{S[0] * v.x + S[3] * v.y + S[4] * v.z, S[3] * v.x + S[1] * v.y + S[5] * v.z,
+                                  S[4] * v.x + S[5] * v.y + S[2] * v.z};
+      };
+      const double trace = S[0] + S[1] + S[2];
+      const core::Vec3<double> G_s = core::load_vec3(own + 1), G_n = core::load_vec3(other + 1);
+      const core::Vec3<double> R_s = T3 + 2.0 * S_times(w_s), R_n = T3 + 2.0 * S_times(w_n);
+      const double Q_s = trace + a * core::dot(w_s, w_s), Q_n = trace + a * core::dot(w_n, w_n);
+      term = term + S_times(G_s - G_n) + (a * (core::dot(G_s, w_s) - core::dot(G_n, w_n))) * w_s +
+             own[4] * (R_s + Q_s * w_s) - other[4] * (R_n + Q_n * w_s);
+    }
+    sum = sum + (1.0 / sqrt(core::dot(offset, offset))) * term;
+  }
 };
 
 // One face of a computed cell into `to` (ClipFunctor::emit_faces, the giant
 // cells): record `record`'s face `slot` (-1: a wall, `target` names it), its
 // centroid from the seed's frame.
-template <typename io_t, typename T>
+template <bool kMoments, typename io_t, typename T>
 TV_HD void store_face(const FaceOutputs<io_t>& to, int64_t record, int slot, int32_t target, core::Vec3<T> seed,
                       const core::Face<T>& face) {
   if (to.offset == nullptr) return;  // the count pass
@@ -63,7 +116,7 @@ TV_HD void store_face(const FaceOutputs<io_t>& to, int64_t record, int slot, int
   to.centroid[3 * e] = static_cast<io_t>(centroid.x);
   to.centroid[3 * e + 1] = static_cast<io_t>(centroid.y);
   to.centroid[3 * e + 2] = static_cast<io_t>(centroid.z);
-  if (to.moments != nullptr) {
+  if constexpr (kMoments) {
     for (int m = 0; m < 6; ++m) to.moments[9 * e + m] = static_cast<io_t>(face.second[m]);
     to.moments[9 * e + 6] = static_cast<io_t>(face.third.x);
     to.moments[9 * e + 7] = static_cast<io_t>(face.third.y);
@@ -71,12 +124,36 @@ TV_HD void store_face(const FaceOutputs<io_t>& to, int64_t record, int slot, int
   }
 }
 
-// The faces of a cell (core::for_each_face), their moments where `to` asks
-// for them; returns the neighbour faces' count.
-template <typename io_t, typename Cell, typename TargetOf, typename Emit>
-TV_HD int emit_cell_faces(const FaceOutputs<io_t>& to, const Cell& cell, TargetOf&& target_of, Emit&& emit) {
-  if (to.offset != nullptr && to.moments != nullptr) return core::for_each_face<true>(cell, target_of, emit);
-  return core::for_each_face<false>(cell, target_of, emit);
+// The faces of a computed cell (core::for_each_face) into `to`: written at
+// record `record`'s offset with their moments where asked, counted only, or
+// (the backward) summed into the gradient of the cell's point, at position
+// `position` with coordinates `seed` (FaceGradient). `points` by position.
+// Returns the neighbour faces' count.
+template <typename io_t, typename Cell, typename TargetOf, typename T = typename Cell::Scalar>
+TV_HD int emit_cell_faces(const FaceOutputs<io_t>& to, const Cell& cell, TargetOf&& target_of, int64_t record,
+                          int64_t position, const io_t* points, core::Vec3<T> seed) {
+  // The faces with or without their moments (std::true_type or std::false_type).
+  const auto faces = [&](auto with_moments) {
+    constexpr bool kMoments = decltype(with_moments)::value;
+    if (to.upstream == nullptr) {
+      return core::for_each_face<kMoments>(cell, target_of, [&](int slot, int32_t target, const core::Face<T>& face) {
+        store_face<kMoments>(to, record, slot, target, seed, face);
+      });
+    }
+    FaceGradient gradient{to.upstream, to.upstream + 5 * position};
+    const int count = core::for_each_face<kMoments>(cell, target_of, [&](int, int32_t target, const core::Face<T>& face) {
+      if (target < 0) return;  // the walls stay
+      const core::Vec3<T> r = core::Vec3<T>{T(points[3 * target]), T(points[3 * target + 1]),
+                                            T(points[3 * target + 2])} - seed;
+      gradient.add<kMoments>(target, r, face);
+    });
+    to.gradient[3 * record] = gradient.sum.x;
+    to.gradient[3 * record + 1] = gradient.sum.y;
+    to.gradient[3 * record + 2] = gradient.sum.z;
+    return count;
+  };
+  const bool moments = to.upstream != nullptr ? to.gradient_moments : to.offset != nullptr && to.moments != nullptr;
+  return moments ? faces(std::true_type()) : faces(std::false_type());
 }
 
 // voronoi_graph's faces as tensors (FaceOutputs): by position on the
@@ -89,12 +166,16 @@ struct FaceTensors {
   at::Tensor centroid;   // (E, 3)
   at::Tensor wall_area;  // (N, 6)
   at::Tensor moments;    // (E, 9), or undefined: none asked
+  // voronoi_cells' backward (FaceOutputs::upstream), instead of the faces:
+  at::Tensor upstream;   // (N, 5) float64 by position
+  at::Tensor gradient;   // (N, 3) float64 by position, zeros: each computed cell's point's faces' terms
+  bool gradient_moments = false;
 
   // The pointers as a FaceOutputs in bytes on `device`, for the passes' functors.
   template <typename io_t>
   at::Tensor outputs_on(const at::Device& device) const {
     const auto pointer = [](const at::Tensor& t, auto* type) -> decltype(type) {
-      using V = std::remove_pointer_t<decltype(type)>;
+      using V = std::remove_const_t<std::remove_pointer_t<decltype(type)>>;
       return t.defined() && t.numel() > 0 ? t.data_ptr<V>() : nullptr;
     };
     const FaceOutputs<io_t> view{offset.defined() ? offset.data_ptr<int64_t>() : nullptr,
@@ -102,7 +183,10 @@ struct FaceTensors {
                                  pointer(area, static_cast<io_t*>(nullptr)),
                                  pointer(centroid, static_cast<io_t*>(nullptr)),
                                  pointer(wall_area, static_cast<io_t*>(nullptr)),
-                                 pointer(moments, static_cast<io_t*>(nullptr))};
+                                 pointer(moments, static_cast<io_t*>(nullptr)),
+                                 pointer(upstream, static_cast<const double*>(nullptr)),
+                                 pointer(gradient, static_cast<double*>(nullptr)),
+                                 gradient_moments};
     at::Tensor bytes = at::empty({int64_t(sizeof(view))}, at::TensorOptions().dtype(at::kByte));
     std::memcpy(bytes.data_ptr<uint8_t>(), &view, sizeof(view));
     return bytes.to(device);
@@ -173,11 +257,20 @@ struct HostFaces {
       const at::Tensor first = device.offset.index_select(0, rows.to(device.offset.device())).to(at::kCPU);
       host.global = at::repeat_interleave(first - host.part.offset, counts) + at::arange(m, cpu.dtype(at::kLong));
     }
+    if (device.upstream.defined()) {  // the backward: every position's upstream (neighbours read theirs)
+      host.part.upstream = device.upstream.to(at::kCPU).contiguous();
+      host.part.gradient = at::zeros({cells.size(0), 3}, cpu.dtype(at::kDouble));
+      host.part.gradient_moments = device.gradient_moments;
+    }
     host.bytes = host.part.outputs_on<io_t>(at::kCPU);
     return host;
   }
 
   void copy_back(const FaceTensors& device, const at::Tensor& cells) const {
+    if (device.gradient.defined()) {
+      device.gradient.index_copy_(0, cells.to(at::kLong).to(device.gradient.device()),
+                                  part.gradient.to(device.gradient.device()));
+    }
     if (!device.offset.defined()) return;
     const at::Device to = device.wall_area.device();
     device.wall_area.index_copy_(0, cells.to(at::kLong).to(to), part.wall_area.to(to));

@@ -240,8 +240,8 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     status[i] = out.status;
   }
 
-  // The faces of computed cell t (core::for_each_face): counted, and with
-  // offsets written (FaceOutputs). A bisector's point is found by its offset
+  // The faces of computed cell t (core::for_each_face): counted, written at
+  // their offsets, or summed into the point's gradient (FaceOutputs). A bisector's point is found by its offset
   // from the seed, in the cell's list or (a cell finished on the grid) the
   // grid. Returns the neighbour faces' count.
   template <typename Cell>
@@ -283,10 +283,7 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
       return core::kNoFace;
     };
     const FaceOutputs<io_t> to = *this->faces;
-    const auto emit = [&](int slot, int32_t target, const core::Face<T>& face) {
-      store_face(to, i, slot, target, seed, face);
-    };
-    return emit_cell_faces(to, cell, target_of, emit);
+    return emit_cell_faces(to, cell, target_of, i, cell_id, points, seed);
   }
 };
 static_assert(sizeof(ClipFunctor<float, float, 32>) <= 128 && sizeof(ClipFunctor<double, double, 32>) <= 128,

@@ -148,9 +148,14 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
     // The caller's k leaves the backend's choice of cells to the spread.
     neighbor_spread = run_pilot<Exec, io_t>(positions, largest_cloud, options.pilot_quantile, run, out).neighbor_spread;
   }
+  FaceTensors faces_by_position;  // the backward's upstream in the grid's order
   if (faces != nullptr) {  // not the pilot's cells: the main pass recomputes them in the final grid
-    out.face_tensors = faces;
-    out.faces = faces->outputs_on<io_t>(points.device());
+    faces_by_position = *faces;
+    if (faces->upstream.defined()) {
+      faces_by_position.upstream = faces->upstream.index_select(0, out.row_of_position.to(at::kLong)).contiguous();
+    }
+    out.face_tensors = &faces_by_position;
+    out.faces = faces_by_position.outputs_on<io_t>(points.device());
   }
   // The retry loop's passes (the tests may inject a fault after the first).
   auto run_round = with_test_faults(options.testing, out, run);
@@ -301,10 +306,13 @@ VoronoiOutputs voronoi_passes(const at::Tensor& points, const at::Tensor& box,
 // call returns (LaunchOnOutputs). Each backend instantiates it once
 // (voronoi.cpp, voronoi.cu), for its voronoi ops and its lloyd_step.
 // voronoi_graph's faces, by position (voronoi_forward with `graph`).
+// With `upstream` (voronoi_cells' backward), one pass instead: no faces
+// are kept, each cell's terms go to `faces.gradient` (FaceGradient).
 struct GraphFaces {
   bool moments = false;        // asked: the faces' second and third moments too
   FaceTensors faces;           // FaceTensors of the fill pass: offsets in the caller's row order
   at::Tensor row_of_position;  // (N,) int32
+  at::Tensor upstream;         // (N, 5) float64 by caller row, or undefined (FaceGradient)
 };
 
 // Where each position's faces go: the caller's rows in order, each its
@@ -366,6 +374,15 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
     if (graph == nullptr) {
       result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, grid_order,
                                               on_outputs, options, nullptr, rows);
+      return;
+    }
+    if (graph->upstream.defined()) {  // the backward: one pass, its sums by position
+      graph->faces.upstream = graph->upstream;  // voronoi_passes puts it in the grid's order
+      graph->faces.gradient = at::zeros({points.size(0), 3}, points.options().dtype(at::kDouble));
+      graph->faces.gradient_moments = graph->moments;
+      result = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in, memory_budget, false, {},
+                                              options, &graph->faces);
+      graph->row_of_position = result.row_of_position;
       return;
     }
     // voronoi_graph: the passes twice, the same cells each time (no result

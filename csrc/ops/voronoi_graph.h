@@ -229,5 +229,32 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
           edge_index, area,          centroid,      wall_area, face_moments};
 }
 
+// torchvor::voronoi_cells_backward: dL/dx (N, 3) float64 through the
+// faces of voronoi_cells' cells (the same passes and cells), from
+// `upstream` (N, 5) float64 by row: dL/dm, dL/dM (3) and dL/dI of each cell
+// (FaceGradient; `moments`: the last four may be nonzero). One pass over
+// the cells, no faces kept. Float32 points are computed as float64, as by
+// voronoi_graph_forward.
+template <typename Exec>
+at::Tensor voronoi_cells_backward(const at::Tensor& points, const at::Tensor& box,
+                                  const c10::optional<at::Tensor>& batch, c10::optional<int64_t> k,
+                                  int64_t memory_budget, const at::Tensor& upstream, bool moments) {
+  TORCH_CHECK(upstream.scalar_type() == at::kDouble && upstream.dim() == 2 && upstream.size(1) == 5 &&
+                  upstream.size(0) == points.size(0) && upstream.device() == points.device(),
+              "torchvor: voronoi_cells_backward: upstream must be (N, 5) float64 on the points' device, got ",
+              upstream.sizes(), " ", upstream.scalar_type(), " on ", upstream.device());
+  if (points.scalar_type() == at::kFloat) {
+    return voronoi_cells_backward<Exec>(points.to(at::kDouble), box.to(at::kDouble), batch, k, memory_budget,
+                                        upstream, moments);
+  }
+  GraphFaces graph;
+  graph.moments = moments;
+  graph.upstream = upstream.contiguous();
+  voronoi_forward<Exec>(points, box, batch, k, memory_budget, false, {}, &graph, c10::nullopt);
+  const at::Tensor gradient = at::zeros({points.size(0), 3}, upstream.options());
+  if (points.size(0) == 0) return gradient;
+  return gradient.index_copy_(0, graph.row_of_position.to(at::kLong), graph.faces.gradient);
+}
+
 }  // namespace ops
 }  // namespace torchvor
