@@ -170,7 +170,10 @@ def test_backward_equals_the_edge_formula(device, gen, kind):
         expected = edge_formula_gradients(points, box, batch, [weights[o] if o in used else None for o in range(3)])
         scale = expected.abs().max().item()
         assert torch.isfinite(x.grad).all()
-        tol = 1e-6 if kind == "float32" else 1e-9
+        # float32: the chain rule reads the forward's float32 volumes and
+        # centroids (c - x loses ~eps32 |c| / |c - x|, about 1e-6 here), which
+        # the backend rounds its own way.
+        tol = 1e-5 if kind == "float32" else 1e-9
         assert (x.grad.double() - expected).abs().max().item() <= tol * scale, used
 
 
