@@ -120,6 +120,15 @@ TV_HD void atomic_increment(int32_t* word) {
 #endif
 }
 
+// *word += amount from many threads at once; returns the value before.
+TV_HD unsigned long long fetch_add(unsigned long long* word, unsigned long long amount) {
+#if defined(__CUDA_ARCH__)
+  return atomicAdd(word, amount);
+#else
+  return __atomic_fetch_add(word, amount, __ATOMIC_RELAXED);
+#endif
+}
+
 // list[(*count)++] = value if `keep`, from many threads at once; the order
 // of the list is not defined. A warp's values go in lane order with one
 // atomic add per warp (not one per value: a pass can fail 700K cells).

@@ -35,9 +35,20 @@ struct alignas(16) CellRecord {
 // Where voronoi_graph's passes write a computed cell's faces
 // (ClipFunctor::emit_faces), on the device that runs them. The record index
 // (a position, or the step in a host pass) picks the cell's offset and walls.
+// The offsets are given (`offset`: the count pass's layout), or each cell
+// claims its range (`next_face`: one pass, no counts before), or neither:
+// the faces are only counted (num_faces).
 template <typename io_t>
 struct FaceOutputs {
-  const int64_t* offset;  // by record: the cell's first face; nullptr: count the faces only (num_faces)
+  const int64_t* offset;  // by record: the cell's first face, or nullptr
+  // Claims: a cell takes a range as long as its bisector planes (a bound on
+  // its faces) from *next_face and writes its first face to claimed[record];
+  // a range past `capacity` is not written (claimed -1) and *next_face then
+  // ends past `capacity`: the caller lays the faces out from the counts and
+  // runs the passes again.
+  unsigned long long* next_face;  // or nullptr
+  int64_t* claimed;               // by record
+  int64_t capacity;               // the faces' arrays' rows
   int32_t* neighbor;      // (E,) the position of the point across each face
   io_t* area;             // (E,)
   io_t* centroid;         // (E, 3)
@@ -49,6 +60,17 @@ struct FaceOutputs {
   const double* upstream;  // (N, 5): FaceGradient's g_m, g_M (3), g_I
   double* gradient;
   bool gradient_moments;   // the faces' moments are needed (g_M or g_I may be nonzero)
+
+  // Where record `record`'s faces go (-1: counted only), claiming a range
+  // of `bound` faces where the faces are claimed.
+  TV_HD int64_t first_face(int64_t record, int bound) const {
+    if (offset != nullptr) return offset[record];
+    if (next_face == nullptr) return -1;
+    const unsigned long long start = core::fetch_add(next_face, static_cast<unsigned long long>(bound));
+    const int64_t first = int64_t(start) + bound <= capacity ? int64_t(start) : -1;
+    claimed[record] = first;
+    return first;
+  }
 };
 
 // voronoi_cells' backward, summed over one cell's faces with no atomics: the
@@ -99,17 +121,17 @@ struct FaceGradient {
 };
 
 // One face of a computed cell into `to` (ClipFunctor::emit_faces, the giant
-// cells): record `record`'s face `slot` (-1: a wall, `target` names it), its
-// centroid from the seed's frame.
+// cells): record `record`'s face `slot` (-1: a wall, `target` names it) at
+// `first + slot` (first -1: not written), its centroid from the seed's frame.
 template <bool kMoments, typename io_t, typename T>
-TV_HD void store_face(const FaceOutputs<io_t>& to, int64_t record, int slot, int32_t target, core::Vec3<T> seed,
-                      const core::Face<T>& face) {
-  if (to.offset == nullptr) return;  // the count pass
+TV_HD void store_face(const FaceOutputs<io_t>& to, int64_t record, int64_t first, int slot, int32_t target,
+                      core::Vec3<T> seed, const core::Face<T>& face) {
   if (slot < 0) {
-    to.wall_area[6 * record + core::wall_of_target(target)] = static_cast<io_t>(face.area);
+    if (to.wall_area != nullptr) to.wall_area[6 * record + core::wall_of_target(target)] = static_cast<io_t>(face.area);
     return;
   }
-  const int64_t e = to.offset[record] + slot;
+  if (first < 0) return;
+  const int64_t e = first + slot;
   const core::Vec3<T> centroid = seed + face.centroid;
   to.neighbor[e] = target;
   to.area[e] = static_cast<io_t>(face.area);
@@ -136,9 +158,19 @@ TV_HD int emit_cell_faces(const FaceOutputs<io_t>& to, const Cell& cell, TargetO
   const auto faces = [&](auto with_moments) {
     constexpr bool kMoments = decltype(with_moments)::value;
     if (to.upstream == nullptr) {
-      return core::for_each_face<kMoments>(cell, target_of, [&](int slot, int32_t target, const core::Face<T>& face) {
-        store_face<kMoments>(to, record, slot, target, seed, face);
+      // A neighbour face's plane is a bisector: planes 0-5 are the box's.
+      const int bound = cell.plane_count() - core::kBoxPlanes;
+      const int64_t first = to.first_face(record, bound);
+      const int count = core::for_each_face<kMoments>(cell, target_of, [&](int slot, int32_t target,
+                                                                            const core::Face<T>& face) {
+        store_face<kMoments>(to, record, to.next_face == nullptr || slot < bound ? first : -1, slot, target, seed,
+                             face);
       });
+      if (count > bound && to.next_face != nullptr) {  // never expected: lay the faces out from the counts
+        to.claimed[record] = -1;
+        core::fetch_add(to.next_face, static_cast<unsigned long long>(to.capacity) + 1);
+      }
+      return count;
     }
     FaceGradient gradient{to.upstream, to.upstream + 5 * position};
     const int count = core::for_each_face<kMoments>(cell, target_of, [&](int, int32_t target, const core::Face<T>& face) {
@@ -152,7 +184,7 @@ TV_HD int emit_cell_faces(const FaceOutputs<io_t>& to, const Cell& cell, TargetO
     to.gradient[3 * record + 2] = gradient.sum.z;
     return count;
   };
-  const bool moments = to.upstream != nullptr ? to.gradient_moments : to.offset != nullptr && to.moments != nullptr;
+  const bool moments = to.upstream != nullptr ? to.gradient_moments : to.moments != nullptr;
   return moments ? faces(std::true_type()) : faces(std::false_type());
 }
 
@@ -160,7 +192,8 @@ TV_HD int emit_cell_faces(const FaceOutputs<io_t>& to, const Cell& cell, TargetO
 // points' device, or by step in a host pass (HostFaces).
 struct FaceTensors {
   at::Tensor count;      // (N,) int32: the count pass's num_faces (undefined in the count pass)
-  at::Tensor offset;     // (N,) int64: the cell's first face (undefined in the count pass)
+  at::Tensor offset;     // (N,) int64: the cell's first face (undefined in the count pass; claimed: -1 none)
+  at::Tensor next_face;  // (1,) int64: claims (FaceOutputs::next_face), or undefined: `offset` is given
   at::Tensor neighbor;   // (E,) int32
   at::Tensor area;       // (E,)
   at::Tensor centroid;   // (E, 3)
@@ -178,7 +211,11 @@ struct FaceTensors {
       using V = std::remove_const_t<std::remove_pointer_t<decltype(type)>>;
       return t.defined() && t.numel() > 0 ? t.data_ptr<V>() : nullptr;
     };
-    const FaceOutputs<io_t> view{offset.defined() ? offset.data_ptr<int64_t>() : nullptr,
+    const bool claims = next_face.defined();
+    const FaceOutputs<io_t> view{offset.defined() && !claims ? offset.data_ptr<int64_t>() : nullptr,
+                                 claims ? reinterpret_cast<unsigned long long*>(next_face.data_ptr<int64_t>()) : nullptr,
+                                 claims ? offset.data_ptr<int64_t>() : nullptr,
+                                 neighbor.defined() ? neighbor.numel() : 0,
                                  pointer(neighbor, static_cast<int32_t*>(nullptr)),
                                  pointer(area, static_cast<io_t*>(nullptr)),
                                  pointer(centroid, static_cast<io_t*>(nullptr)),
@@ -238,11 +275,15 @@ struct HostFaces {
   at::Tensor bytes;   // part.outputs_on(CPU)
   at::Tensor global;  // (M,) int64: each face's index in the device's arrays
 
+  // Where the device's faces are claimed, the host's cells are counted only
+  // and the claims marked full: the caller lays the faces out from the counts.
   template <typename io_t>
   static HostFaces make(const FaceTensors& device, const at::Tensor& cells) {
     HostFaces host;
     const at::TensorOptions cpu = at::TensorOptions().device(at::kCPU);
-    if (device.offset.defined()) {
+    if (device.next_face.defined()) {
+      if (cells.numel() > 0) device.next_face.fill_(device.neighbor.numel() + 1);
+    } else if (device.offset.defined()) {
       const at::Tensor rows = cells.to(at::kLong);
       const at::Tensor counts = device.count.index_select(0, rows.to(device.count.device())).to(at::kCPU).to(at::kLong);
       const at::Tensor ends = counts.cumsum(0);
@@ -271,7 +312,7 @@ struct HostFaces {
       device.gradient.index_copy_(0, cells.to(at::kLong).to(device.gradient.device()),
                                   part.gradient.to(device.gradient.device()));
     }
-    if (!device.offset.defined()) return;
+    if (!device.offset.defined() || device.next_face.defined()) return;
     const at::Device to = device.wall_area.device();
     device.wall_area.index_copy_(0, cells.to(at::kLong).to(to), part.wall_area.to(to));
     if (global.numel() == 0) return;

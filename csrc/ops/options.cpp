@@ -56,6 +56,9 @@ Options Options::from_environment() {
   long long integer = 0;
   if (read_integer("TORCHVOR_VERTEX_BALLS_K", integer) && integer >= 1) options.vertex_balls_k = integer;
   if (read_integer("TORCHVOR_SPECULATIVE_CELLS", integer) && integer >= 0) options.speculative_cells = integer;
+  if (read_integer("TORCHVOR_GRAPH_CLAIMED_FACES", integer) && integer >= 0 && integer <= 4096) {
+    options.graph_claimed_faces = integer;
+  }
   if (read_integer("TORCHVOR_CELL_BLOCKS_PER_SM", integer) && integer >= 1) options.cell_blocks_per_sm = integer;
   if (read_integer("TORCHVOR_STREAM_ROWS_BYTES", integer) && integer >= 0) options.stream_rows_bytes = integer;
   if (read_integer("TORCHVOR_TEST_SCATTER_BYTES", integer) && integer > 0) options.testing.scatter_bytes = integer;

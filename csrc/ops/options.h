@@ -28,6 +28,8 @@ struct Options {
   int64_t vertex_balls_k = 256;     // TORCHVOR_VERTEX_BALLS_K >= 1: the most neighbours a retry asks for
   int64_t speculative_cells = 16384;  // TORCHVOR_SPECULATIVE_CELLS >= 0: the speculative retry's capacity
   double points_per_cell_scale = 1.0;  // TORCHVOR_POINTS_PER_CELL_SCALE > 0: multiplies the grid's density rule
+  int64_t graph_claimed_faces = 20;  // TORCHVOR_GRAPH_CLAIMED_FACES >= 0: voronoi_graph's room a cell in its one
+                                     // pass (0: a count pass, then the faces)
   int64_t cell_blocks_per_sm = 0;   // TORCHVOR_CELL_BLOCKS_PER_SM >= 1: CUDA thread-cell residency (0: the rule)
   bool cpu_baseline_isa = false;    // TORCHVOR_CPU_ISA=baseline: the CPU clip loop without its AVX2+FMA copy
   int64_t stream_rows_bytes = int64_t(32) << 20;  // TORCHVOR_STREAM_ROWS_BYTES >= 0: the CPU kNN's results from

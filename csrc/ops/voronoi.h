@@ -336,6 +336,22 @@ FaceTensors face_layout(const at::Tensor& count, const at::Tensor& row_of_positi
   return faces;
 }
 
+// Face arrays for `capacity` faces that the passes' cells claim ranges of
+// (FaceOutputs::next_face), each cell's first face in `offset` by position
+// (-1: none).
+template <typename Exec>
+FaceTensors claimed_layout(int64_t n, int64_t capacity, bool moments, const at::TensorOptions& options) {
+  FaceTensors faces;
+  faces.offset = at::full({n}, -1, options.dtype(at::kLong));
+  faces.next_face = at::zeros({1}, options.dtype(at::kLong));
+  faces.neighbor = Exec::empty({capacity}, options.dtype(at::kInt));
+  faces.area = Exec::empty({capacity}, options);
+  faces.centroid = Exec::empty({capacity, 3}, options);
+  faces.wall_area = at::zeros({n, 6}, options);
+  if (moments) faces.moments = Exec::empty({capacity, 9}, options);
+  return faces;
+}
+
 template <typename Exec>
 VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& box_in,
                                const c10::optional<at::Tensor>& batch_in, c10::optional<int64_t> k_in,
@@ -385,12 +401,26 @@ VoronoiOutputs voronoi_forward(const at::Tensor& points_in, const at::Tensor& bo
       graph->row_of_position = result.row_of_position;
       return;
     }
-    // voronoi_graph: the passes twice, the same cells each time (no result
-    // depends on the order of a pass): the first counts each cell's faces,
-    // the second writes them where the counts say.
-    const FaceTensors counting;
+    // voronoi_graph: one pass whose cells claim their faces' ranges; where
+    // the room ran out (or a host pass computed cells, which do not claim),
+    // the passes again, the same cells each time (no result depends on the
+    // order of a pass), writing where the first one's counts say.
+    const int64_t n = points.size(0);
+    // (Options::graph_claimed_faces: the room a cell; 0: the count pass.)
+    FaceTensors claiming;
+    if (options.graph_claimed_faces > 0) {
+      claiming = claimed_layout<Exec>(n, options.graph_claimed_faces * n, graph->moments, points.options());
+    }
     const VoronoiOutputs counted = voronoi_passes<Exec, scalar_t>(points, box, batch, bounds, prepared, k_in,
-                                                                  memory_budget, false, {}, options, &counting);
+                                                                  memory_budget, false, {}, options, &claiming);
+    if (claiming.next_face.defined() && claiming.next_face.item<int64_t>() <= claiming.neighbor.numel()) {
+      claiming.count = counted.face_count;
+      graph->faces = claiming;
+      graph->row_of_position = counted.row_of_position;
+      result = counted;
+      return;
+    }
+    claiming = FaceTensors();
     graph->faces = face_layout<Exec>(counted.face_count, counted.row_of_position, graph->moments, points.options());
     const Prepared again{Exec::iota(points.size(0), points.options()),
                          not_computed_statuses(points.size(0), points.options())};

@@ -24,43 +24,53 @@ struct Edges {
   at::Tensor moments;     // (E, 9), or empty without moments
 };
 
-// Each cell row r's faces [first[r], first[r] + count[r]): the edges' cell
-// rows, and their neighbours' rows from their positions.
+// Each cell row r's faces, at [from[r], from[r] + count[r]) of the passes'
+// arrays, as edges [first[r], first[r] + count[r]): the edges' cell rows,
+// and their neighbours' rows from their positions.
 struct EdgeRowsFunctor {
+  const int64_t* from;
   const int64_t* first;
   const int64_t* count;
   const int32_t* row_of_position;
-  const int32_t* neighbor;  // (E,) positions
+  const int32_t* neighbor;  // the passes' (by face) positions
   int32_t* cell_row;        // (E,)
   int32_t* neighbor_row;    // (E,)
 
   TV_HD void operator()(int64_t r) const {
-    for (int64_t e = first[r]; e < first[r] + count[r]; ++e) {
-      cell_row[e] = static_cast<int32_t>(r);
-      neighbor_row[e] = row_of_position[neighbor[e]];
+    for (int64_t f = 0; f < count[r]; ++f) {
+      cell_row[first[r] + f] = static_cast<int32_t>(r);
+      neighbor_row[first[r] + f] = row_of_position[neighbor[from[r] + f]];
     }
   }
 };
 
 // Edge e to its place in its cell's range sorted by neighbour row: its rank
-// there (the rows in a range are distinct), its columns moved along.
+// there (the rows in a range are distinct), its columns (area, centroid,
+// moments) moved along from the passes' arrays.
 template <typename io_t>
 struct SortEdgesFunctor {
+  const int64_t* from;
   const int64_t* first;
   const int64_t* count;
   const int32_t* cell_row;
   const int32_t* neighbor_row;
-  const io_t* values;  // (E, columns): area, centroid, moments
-  int64_t columns;
+  const io_t* area;      // the passes' (by face)
+  const io_t* centroid;  // 3 a face
+  const io_t* moments;   // 9 a face, or nullptr
+  int64_t columns;       // 4, or 13 with moments
   int32_t* sorted_neighbor;
-  io_t* sorted_values;
+  io_t* sorted_values;   // (E, columns)
 
   TV_HD void operator()(int64_t e) const {
     const int32_t r = cell_row[e], j = neighbor_row[e];
     int64_t to = first[r];
     for (int64_t other = first[r]; other < first[r] + count[r]; ++other) to += neighbor_row[other] < j ? 1 : 0;
+    const int64_t f = from[r] + (e - first[r]);
     sorted_neighbor[to] = j;
-    for (int64_t c = 0; c < columns; ++c) sorted_values[to * columns + c] = values[e * columns + c];
+    io_t* values = sorted_values + to * columns;
+    values[0] = area[f];
+    for (int c = 0; c < 3; ++c) values[1 + c] = centroid[3 * f + c];
+    for (int64_t c = 4; c < columns; ++c) values[c] = moments[9 * f + c - 4];
   }
 };
 
@@ -127,29 +137,33 @@ struct SymmetricEdgeFunctor {
 // mean of their areas and of their moments, and their centroids weighted by
 // area (SymmetricEdgeFunctor); a face only one of them found (one near the
 // area floor, core::FaceAreaFloor) is kept in both directions with that
-// cell's values. `values` (E, C) holds area, centroid, moments; cell row
-// r's faces are [first[r], first[r] + count[r]).
+// cell's values. Cell row r's faces are at [from[r], from[r] + count[r]) of
+// the passes' arrays (FaceTensors), and become edges [first[r], first[r] +
+// count[r]) (first: the counts' exclusive sum; E edges in all).
 template <typename Exec, typename io_t>
-Edges symmetric_edges(const at::Tensor& first, const at::Tensor& count, const at::Tensor& row_of_position,
-                      const at::Tensor& neighbor, const at::Tensor& values, int64_t n, bool moments) {
-  const int64_t edges = neighbor.numel(), columns = values.size(1);
+Edges symmetric_edges(const at::Tensor& from, const at::Tensor& first, const at::Tensor& count, int64_t edges,
+                      const at::Tensor& row_of_position, const FaceTensors& faces, int64_t n, bool moments) {
+  const int64_t columns = moments ? 13 : 4;
+  const at::Tensor& neighbor = faces.neighbor;
+  const at::TensorOptions values = faces.area.options();
   const at::TensorOptions ints = neighbor.options().dtype(at::kInt);
   const at::Tensor cell_row = Exec::empty({edges}, ints), neighbor_row = Exec::empty({edges}, ints);
-  Exec::for_each(n, EdgeRowsFunctor{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
+  Exec::for_each(n, EdgeRowsFunctor{from.data_ptr<int64_t>(), first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
                                     row_of_position.data_ptr<int32_t>(), neighbor.data_ptr<int32_t>(),
                                     cell_row.data_ptr<int32_t>(), neighbor_row.data_ptr<int32_t>()});
-  const at::Tensor sorted_neighbor = Exec::empty({edges}, ints), sorted = Exec::empty({edges, columns}, values.options());
-  Exec::for_each(edges, SortEdgesFunctor<io_t>{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
-                                               cell_row.data_ptr<int32_t>(), neighbor_row.data_ptr<int32_t>(),
-                                               values.data_ptr<io_t>(), columns, sorted_neighbor.data_ptr<int32_t>(),
-                                               sorted.data_ptr<io_t>()});
+  const at::Tensor sorted_neighbor = Exec::empty({edges}, ints), sorted = Exec::empty({edges, columns}, values);
+  Exec::for_each(edges, SortEdgesFunctor<io_t>{from.data_ptr<int64_t>(), first.data_ptr<int64_t>(),
+                                               count.data_ptr<int64_t>(), cell_row.data_ptr<int32_t>(),
+                                               neighbor_row.data_ptr<int32_t>(), faces.area.data_ptr<io_t>(),
+                                               faces.centroid.data_ptr<io_t>(),
+                                               moments ? faces.moments.data_ptr<io_t>() : nullptr, columns,
+                                               sorted_neighbor.data_ptr<int32_t>(), sorted.data_ptr<io_t>()});
   const at::Tensor reverse = Exec::empty({edges}, neighbor.options().dtype(at::kLong));
   Exec::for_each(edges, ReverseEdgeFunctor{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
                                            cell_row.data_ptr<int32_t>(), sorted_neighbor.data_ptr<int32_t>(),
                                            reverse.data_ptr<int64_t>()});
-  Edges out{Exec::empty({2, edges}, neighbor.options().dtype(at::kLong)), Exec::empty({edges}, values.options()),
-            Exec::empty({edges, 3}, values.options()),
-            Exec::empty({moments ? edges : 0, columns - 4}, values.options())};
+  Edges out{Exec::empty({2, edges}, neighbor.options().dtype(at::kLong)), Exec::empty({edges}, values),
+            Exec::empty({edges, 3}, values), Exec::empty({moments ? edges : 0, columns - 4}, values)};
   Exec::for_each(edges, SymmetricEdgeFunctor<io_t>{sorted.data_ptr<io_t>(), columns, reverse.data_ptr<int64_t>(),
                                                    cell_row.data_ptr<int32_t>(), sorted_neighbor.data_ptr<int32_t>(),
                                                    edges, out.edge_index.data_ptr<int64_t>(), out.area.data_ptr<io_t>(),
@@ -207,17 +221,16 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
   if (n > 0) {
     const at::Tensor row_of_position = graph.row_of_position.to(at::kLong);
     wall_area.index_copy_(0, row_of_position, faces.wall_area);
-    // The faces lie in the caller's row order (face_layout): cell row r has
-    // its count's range.
+    // Cell row r's faces: its count from its offset (face_layout's rows in
+    // order, or the ranges the cells claimed), as edges in row order.
     const at::Tensor count_by_row = at::zeros({n}, longs).index_copy_(0, row_of_position, faces.count.to(at::kLong));
-    const at::Tensor first_by_row = count_by_row.cumsum(0) - count_by_row;
-    std::vector<at::Tensor> columns = {faces.area.unsqueeze(1), faces.centroid};
-    if (moments) columns.push_back(faces.moments);
-    const at::Tensor values = at::cat(columns, 1).contiguous();
+    const at::Tensor from_by_row = at::zeros({n}, longs).index_copy_(0, row_of_position, faces.offset);
+    const at::Tensor ends = count_by_row.cumsum(0);
+    const int64_t num_edges = ends[-1].item<int64_t>();
     Edges edges;
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_graph", [&] {
-      edges = symmetric_edges<Exec, scalar_t>(first_by_row, count_by_row, graph.row_of_position.contiguous(),
-                                              faces.neighbor, values, n, moments);
+      edges = symmetric_edges<Exec, scalar_t>(from_by_row, ends - count_by_row, count_by_row, num_edges,
+                                              graph.row_of_position.contiguous(), faces, n, moments);
     });
     edge_index = edges.edge_index;
     area = edges.area;
