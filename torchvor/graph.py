@@ -67,9 +67,10 @@ def voronoi_graph(
     or more cospherical points, as in a lattice) and is not an edge; a face
     that only one of its two cells keeps is kept both ways.
 
-    Memory: the passes run twice, counting each cell's faces, then writing
-    them where the counts say; no N x k array is held beyond the neighbour
-    buffer of one chunk (``memory_budget``).
+    Memory: the passes run once, each cell writing its faces into arrays of
+    20 rows a cell (36 bytes a row); where those run out, twice (counting
+    each cell's faces, then writing them where the counts say). No N x k
+    array is held beyond the neighbour buffer of one chunk (``memory_budget``).
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``.
