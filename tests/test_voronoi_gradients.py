@@ -177,6 +177,23 @@ def test_backward_equals_the_edge_formula(device, gen, kind):
         assert (x.grad.double() - expected).abs().max().item() <= tol * scale, used
 
 
+def test_backward_with_and_without_moments_agree(device, gen):
+    """The volumes' backward without the faces' moments (kernels of their own
+    on the GPU) and with them (zero centroid and second-moment gradients)
+    sum the same terms: equal to rounding."""
+    n = 3000
+    points = rand(n, gen, torch.float64, device)
+    box = torch.tensor([UNIT], dtype=torch.float64, device=device)
+    upstream = torch.zeros(n, 5, dtype=torch.float64)
+    upstream[:, 0] = torch.randn(n, generator=gen, dtype=torch.float64)
+    upstream = upstream.to(device)
+    backward = torch.ops.torchvor.voronoi_cells_backward.default
+    without = backward(points, box, None, None, 1 << 30, upstream, False)
+    with_moments = backward(points, box, None, None, 1 << 30, upstream, True)
+    assert torch.isfinite(without).all()
+    torch.testing.assert_close(without, with_moments, rtol=0, atol=1e-12 * without.abs().max().item())
+
+
 def test_backward_is_deterministic(device, gen):
     """Each point's gradient is summed by its own cell (no atomic adds): two
     backward passes agree bit for bit."""

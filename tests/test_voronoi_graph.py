@@ -235,6 +235,20 @@ def test_claimed_faces_and_counted_faces_agree(device, dtype, gen, kind, monkeyp
     assert graphs[0][10].shape == (edge_index.shape[1], 9)
 
 
+def test_faces_with_and_without_moments_agree(device, gen):
+    """The faces without moments (voronoi_graph's kernels of their own on the
+    GPU) and with them: the same edges, their areas and centroids equal to
+    rounding."""
+    points = rand(3000, gen, torch.float64, device)
+    box = torch.tensor([UNIT], dtype=torch.float64, device=device)
+    without = torch.ops.torchvor.voronoi_graph.default(points, box, None, None, 1 << 30, False)
+    with_moments = torch.ops.torchvor.voronoi_graph.default(points, box, None, None, 1 << 30, True)
+    assert torch.equal(without[6], with_moments[6])
+    for a, b in zip(without[7:10], with_moments[7:10]):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
+    assert without[10].numel() == 0 and with_moments[10].shape == (without[6].shape[1], 9)
+
+
 def test_laplacian(device, dtype, gen):
     points = rand(500, gen, dtype, device)
     laplacian = torchvor.voronoi_laplacian(points, UNIT)
