@@ -140,17 +140,22 @@ for step in "${@:-cudatests}"; do
       python3 benchmarks/profile_gpu.py --device cuda --sizes ${TIMELINE_SIZES:-1M,10M} --timeline --rows 8 2>&1 \
         | grep -v -e USDT -e profiler -e _warn_once | tee "$OUT/timeline.log" ;;
     profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
-    ncu)
+    ncu)  # the first launch of a clip kernel under Nsight Compute, on a 1M jittered grid: NCU_CALL (voronoi, default, at
+          # k=35; or voronoi_graph at the op's k), NCU_KERNEL (a regex of the demangled name, default ClipFunctor;
+          # e.g. 'ClipFunctor<double, double, 32, false, false, true' for the graph's tier-32 face kernel), NCU_ARGS
+          # more options (e.g. "--section SourceCounters": the stalls' source lines)
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
 import torch, torchvor.samples
 torch.save(torchvor.samples.jittered_grid(1_000_000, seed=1), "/tmp/jittered_1m.pt")
 PY
-      ncu --clock-control none --kernel-name-base demangled -k regex:ClipFunctor --launch-count 1 --section SpeedOfLight --section WarpStateStats \
-          --section Occupancy --section LaunchStats --section MemoryWorkloadAnalysis --section SchedulerStats \
+      call=${NCU_CALL:-voronoi}
+      ncu --clock-control none --kernel-name-base demangled -k "regex:${NCU_KERNEL:-ClipFunctor}" --launch-count 1 --section SpeedOfLight --section WarpStateStats \
+          --section Occupancy --section LaunchStats --section MemoryWorkloadAnalysis --section SchedulerStats ${NCU_ARGS:-} \
           python3 -c "
 import torch, torchvor
 p = torch.load('/tmp/jittered_1m.pt').cuda()
-torchvor.voronoi(p, ([0,0,0],[1,1,1]), k=35, on_failure='flag'); torch.cuda.synchronize()
+kwargs = {'k': 35} if '$call' == 'voronoi' else {}
+getattr(torchvor, '$call')(p, ([0,0,0],[1,1,1]), on_failure='flag', **kwargs); torch.cuda.synchronize()
 " 2>&1 | grep -v '^==PROF==' | tee "$OUT/ncu.log" | grep -E "Duration|Throughput|Registers|Achieved Occupancy|Theoretical Occupancy|Stall|Warp Cycles|Local|L1/TEX Hit|L2 Hit|Eligible|Issued|Block Limit|Dynamic|Static|Executed Ipc" ;;
     sanitize)  # under each of SANITIZE_TOOLS (default memcheck racecheck synccheck):
                # white noise (SANITIZE_N points; SANITIZE_N=0: none) under each SANITIZE_SETTINGS: space-separated environment settings, each a run ("default" = none),
