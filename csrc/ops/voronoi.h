@@ -315,6 +315,17 @@ struct GraphFaces {
   at::Tensor upstream;         // (N, 5) float64 by caller row, or undefined (FaceGradient)
 };
 
+// The face arrays of `faces` (neighbor to moments), `rows` faces for n cells.
+template <typename Exec>
+void allocate_face_arrays(FaceTensors& faces, int64_t n, int64_t rows, bool moments,
+                          const at::TensorOptions& options) {
+  faces.neighbor = Exec::empty({rows}, options.dtype(at::kInt));
+  faces.area = Exec::empty({rows}, options);
+  faces.centroid = Exec::empty({rows, 3}, options);
+  faces.wall_area = at::zeros({n, 6}, options);
+  if (moments) faces.moments = Exec::empty({rows, 9}, options);
+}
+
 // Where each position's faces go: the caller's rows in order, each its
 // count's share (counts by position from the count pass).
 template <typename Exec>
@@ -327,12 +338,7 @@ FaceTensors face_layout(const at::Tensor& count, const at::Tensor& row_of_positi
   const at::Tensor count_by_row = at::zeros({n}, count.options().dtype(at::kLong)).index_copy_(0, rows, count.to(at::kLong));
   const at::Tensor ends = count_by_row.cumsum(0);
   faces.offset = (ends - count_by_row).index_select(0, rows);
-  const int64_t edges = n > 0 ? ends[-1].item<int64_t>() : 0;
-  faces.neighbor = Exec::empty({edges}, options.dtype(at::kInt));
-  faces.area = Exec::empty({edges}, options);
-  faces.centroid = Exec::empty({edges, 3}, options);
-  faces.wall_area = at::zeros({n, 6}, options);
-  if (moments) faces.moments = Exec::empty({edges, 9}, options);
+  allocate_face_arrays<Exec>(faces, n, n > 0 ? ends[-1].item<int64_t>() : 0, moments, options);
   return faces;
 }
 
@@ -344,11 +350,7 @@ FaceTensors claimed_layout(int64_t n, int64_t capacity, bool moments, const at::
   FaceTensors faces;
   faces.offset = at::full({n}, -1, options.dtype(at::kLong));
   faces.next_face = at::zeros({1}, options.dtype(at::kLong));
-  faces.neighbor = Exec::empty({capacity}, options.dtype(at::kInt));
-  faces.area = Exec::empty({capacity}, options);
-  faces.centroid = Exec::empty({capacity, 3}, options);
-  faces.wall_area = at::zeros({n, 6}, options);
-  if (moments) faces.moments = Exec::empty({capacity, 9}, options);
+  allocate_face_arrays<Exec>(faces, n, capacity, moments, options);
   return faces;
 }
 
