@@ -88,8 +88,13 @@ TV_HD bool faces_resolved(const Cell& cell) {
       if (!cell.vertex_planes(t, ids)) continue;
       const Vec3<T> a = cell.plane(ids[0]).normal, b = cell.plane(ids[1]).normal, c = cell.plane(ids[2]).normal;
       const T det = dot(cross(a, b), c);
-      const T sine = (det < T(0) ? -det : det) * rsqrt_of(dot(a, a)) * rsqrt_of(dot(b, b)) * rsqrt_of(dot(c, c));
-      if (!(sine >= T(limit))) return false;
+      const T lengths2 = dot(a, a) * dot(b, b) * dot(c, c);
+      if (lengths2 > T(1e-280) && lengths2 < T(1e280)) {  // sine^2 = det^2 / lengths2, no roots
+        if (!(det * det >= T(limit * limit) * lengths2)) return false;
+      } else {  // normals too short or long to square thrice (NaN too)
+        const T sine = (det < T(0) ? -det : det) * rsqrt_of(dot(a, a)) * rsqrt_of(dot(b, b)) * rsqrt_of(dot(c, c));
+        if (!(sine >= T(limit))) return false;
+      }
     }
   }
   return true;
@@ -228,13 +233,24 @@ TV_HD bool face_of_plane(const Cell& cell, int q, OnPlane&& on_plane, Face<T>& f
     const Vec3<T> to_v = v - apex;
     // The apex's foot on each edge line through v, relative to the apex: the
     // edge's other vertex computes the same point up to rounding, so the two
-    // triangles make (apex, edge), and all of them stay near the face.
-    const auto foot_on_edge = [&](const Plane<T>& other) {
-      const Vec3<T> direction = cross(p.normal, other.normal);
-      return to_v - (dot(to_v, direction) / dot(direction, direction)) * direction;
-    };
-    const Vec3<T> next_foot = foot_on_edge(cell.plane(ids[(e + 1) % 3]));
-    const Vec3<T> previous_foot = foot_on_edge(cell.plane(ids[(e + 2) % 3]));
+    // triangles make (apex, edge), and all of them stay near the face. One
+    // division for both feet where the product of the lines' squared
+    // directions stays well inside the exponent's range.
+    const Vec3<T> next_direction = cross(p.normal, cell.plane(ids[(e + 1) % 3]).normal);
+    const Vec3<T> previous_direction = cross(p.normal, cell.plane(ids[(e + 2) % 3]).normal);
+    const T next2 = dot(next_direction, next_direction), previous2 = dot(previous_direction, previous_direction);
+    const T both2 = next2 * previous2;
+    T next_step = dot(to_v, next_direction), previous_step = dot(to_v, previous_direction);
+    if (both2 > T(1e-280) && both2 < T(1e280)) {
+      const T inverse = T(1) / both2;
+      next_step = next_step * (previous2 * inverse);
+      previous_step = previous_step * (next2 * inverse);
+    } else {
+      next_step = next_step / next2;
+      previous_step = previous_step / previous2;
+    }
+    const Vec3<T> next_foot = to_v - next_step * next_direction;
+    const Vec3<T> previous_foot = to_v - previous_step * previous_direction;
     const T a = dot(outward, cross(next_foot, to_v));
     const T b = dot(outward, cross(previous_foot, to_v));
     twice_area += a - b;

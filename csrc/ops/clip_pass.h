@@ -96,25 +96,38 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
 #if !defined(__CUDA_ARCH__)
       const std::unique_ptr<Cell> cell(new Cell);
       core::CellIntegrals<T> out = compute(*cell, t);
-      if constexpr (kFaces) check_faces_resolved(*cell, t, out);
-      write(t, out, faces_of(*cell, t, out));
+      if constexpr (kFaces) {
+        const std::unique_ptr<int32_t[]> plane_target(new int32_t[MAX_PLANES]);
+        check_faces_resolved(*cell, t, out, plane_target.get());
+        write(t, out, emit_faces(*cell, t, out, plane_target.get()));
+      } else {
+        write(t, out, 0);
+      }
 #endif
     } else {
       Cell cell;
       core::CellIntegrals<T> out = compute(cell, t);
-      if constexpr (kFaces) check_faces_resolved(cell, t, out);
-      write(t, out, faces_of(cell, t, out));
+      if constexpr (kFaces) {
+        int32_t plane_target[MAX_PLANES];
+        check_faces_resolved(cell, t, out, plane_target);
+        write(t, out, emit_faces(cell, t, out, plane_target));
+      } else {
+        write(t, out, 0);
+      }
     }
   }
 
   // voronoi_graph: a computed cell whose faces the arithmetic does not
   // resolve (core::faces_resolved, or a face's near copy dropped within the
   // tolerance band: near_copies_of_faces) is ill-conditioned: a later pass
-  // recomputes it wider.
+  // recomputes it wider. plane_target (MAX_PLANES): each bisector face's
+  // neighbour where the check met it in the list, else -1 (emit_faces).
   template <typename Cell>
-  TV_HD void check_faces_resolved(const Cell& cell, int64_t t, core::CellIntegrals<T>& out) const {
+  TV_HD void check_faces_resolved(const Cell& cell, int64_t t, core::CellIntegrals<T>& out,
+                                  int32_t* plane_target) const {
+    for (int q = 0; q < cell.plane_count(); ++q) plane_target[q] = -1;
     if (out.status != core::kSuccess) return;
-    if (core::faces_resolved<io_t>(cell) && !near_copies_of_faces(cell, t)) return;
+    if (core::faces_resolved<io_t>(cell) && !near_copies_of_faces(cell, t, plane_target)) return;
     const T nan = T(0) / T(0);
     out.status = core::kIllConditioned;
     out.volume = nan;
@@ -127,7 +140,8 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
   TV_HD void operator()(int64_t t, Lanes lanes, Arrays& arrays) const {
     core::CooperativeCell<T, MAX_PLANES, kMaxTriangles, Lanes> cell(arrays, lanes);
     const core::CellIntegrals<T> out = compute(cell, t);
-    const int num_faces = faces_of(cell, t, out);
+    int num_faces = 0;
+    if constexpr (kFaces) num_faces = emit_faces(cell, t, out, nullptr);
     if (lanes.index() == 0) write(t, out, num_faces);
   }
 
@@ -139,9 +153,11 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
   // within core::FaceBandMargin tolerance bands of a vertex (its face may
   // have been dropped within the band).
   // Such a pair has |r_j|^2 within 2.5 x the limit of |r_q|^2: the faces,
-  // sorted by |r_q|^2, are swept beside the list (sorted by distance).
+  // sorted by |r_q|^2, are swept beside the list (sorted by distance). The
+  // sweep meets each listed face's own neighbour (r_j = r_q): it goes to
+  // plane_target[q].
   template <typename Cell>
-  TV_HD bool near_copies_of_faces(const Cell& cell, int64_t t) const {
+  TV_HD bool near_copies_of_faces(const Cell& cell, int64_t t, int32_t* plane_target) const {
     constexpr double limit = core::FaceSeparationLimit<io_t, T>::value;
     if constexpr (limit > 0.0) {
       bool named[MAX_PLANES];  // the planes a vertex names: the faces
@@ -186,6 +202,7 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
           const core::Vec3<T> normal = cell.plane(face_plane[m]).normal;
           const core::Vec3<T> d = {rj.x + normal.x, rj.y + normal.y, rj.z + normal.z};  // r_j - r_q
           const T d2 = core::dot(d, d);
+          if (d2 == T(0) && plane_target[face_plane[m]] < 0) plane_target[face_plane[m]] = j;
           face = face || d2 == T(0);
           if (d2 > T(0) && d2 <= T(limit * limit) * face_r2[m]) {
             near = true;
@@ -203,16 +220,6 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
       }
     }
     return false;
-  }
-
-  // The cell's neighbour faces' count, written where kFaces asks (0 without).
-  template <typename Cell>
-  TV_HD int faces_of(const Cell& cell, int64_t t, const core::CellIntegrals<T>& out) const {
-    if constexpr (kFaces) {
-      return emit_faces(cell, t, out);
-    } else {
-      return 0;
-    }
   }
 
   template <typename Cell>
@@ -243,9 +250,11 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
   // The faces of computed cell t (core::for_each_face): counted, written at
   // their offsets, or summed into the point's gradient (FaceOutputs). A bisector's point is found by its offset
   // from the seed, in the cell's list or (a cell finished on the grid) the
-  // grid. Returns the neighbour faces' count.
+  // grid (plane_target: the planes' neighbours found already, -1 where not;
+  // or nullptr). Returns the neighbour faces' count.
   template <typename Cell>
-  TV_HD int emit_faces(const Cell& cell, int64_t t, const core::CellIntegrals<T>& out) const {
+  TV_HD int emit_faces(const Cell& cell, int64_t t, const core::CellIntegrals<T>& out,
+                       const int32_t* plane_target) const {
     if (out.status != core::kSuccess) return 0;
     const int64_t i = rows_by_step ? t : cells[t];
     const int32_t cell_id = cells[t];
@@ -259,9 +268,12 @@ struct ClipFunctor : VertexBallsGridMember<io_t, kVertexBalls>, FacesMember<io_t
     // The planes follow the list's order but for the start's: each search
     // starts after the last match and wraps around.
     int32_t listed = -1, cursor = 0;  // the list's length (-1 padding after), found at the first search
-    const auto target_of = [&](int, const core::Plane<T>& p) -> int32_t {
-      const int wall = core::wall_of(p, lo, hi);
-      if (wall >= 0) return core::wall_target(wall);
+    const auto target_of = [&](int q, const core::Plane<T>& p) -> int32_t {
+      if (q < core::kBoxPlanes) {  // planes 0-5 are the box's, the others bisectors
+        const int wall = core::wall_of(p, lo, hi);
+        if (wall >= 0) return core::wall_target(wall);
+      }
+      if (plane_target != nullptr && plane_target[q] >= 0) return plane_target[q];
       const core::Vec3<T> r = {-p.normal.x, -p.normal.y, -p.normal.z};  // bisector_plane's normal
       if (listed < 0) {
         listed = 0;
