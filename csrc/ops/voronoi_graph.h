@@ -24,22 +24,22 @@ struct Edges {
   at::Tensor moments;     // (E, 9), or empty without moments
 };
 
-// Each cell row r's faces, at [from[r], from[r] + count[r]) of the passes'
-// arrays, as edges [first[r], first[r] + count[r]): the edges' cell rows,
-// and their neighbours' rows from their positions.
+// Each cell row r's faces, at [from[r], from[r] + count) of the passes'
+// arrays (count = first[r + 1] - first[r]), as edges [first[r], first[r + 1]):
+// the edges' cell rows, and their neighbours' rows from their positions.
 struct EdgeRowsFunctor {
   const int64_t* from;
-  const int64_t* first;
-  const int64_t* count;
+  const int64_t* first;     // (n + 1,)
   const int32_t* row_of_position;
   const int32_t* neighbor;  // the passes' (by face) positions
   int32_t* cell_row;        // (E,)
   int32_t* neighbor_row;    // (E,)
 
   TV_HD void operator()(int64_t r) const {
-    for (int64_t f = 0; f < count[r]; ++f) {
-      cell_row[first[r] + f] = static_cast<int32_t>(r);
-      neighbor_row[first[r] + f] = row_of_position[neighbor[from[r] + f]];
+    const int64_t begin = first[r], count = first[r + 1] - begin;
+    for (int64_t f = 0; f < count; ++f) {
+      cell_row[begin + f] = static_cast<int32_t>(r);
+      neighbor_row[begin + f] = row_of_position[neighbor[from[r] + f]];
     }
   }
 };
@@ -50,8 +50,7 @@ struct EdgeRowsFunctor {
 template <typename io_t>
 struct SortEdgesFunctor {
   const int64_t* from;
-  const int64_t* first;
-  const int64_t* count;
+  const int64_t* first;  // (n + 1,)
   const int32_t* cell_row;
   const int32_t* neighbor_row;
   const io_t* area;      // the passes' (by face)
@@ -63,9 +62,10 @@ struct SortEdgesFunctor {
 
   TV_HD void operator()(int64_t e) const {
     const int32_t r = cell_row[e], j = neighbor_row[e];
-    int64_t to = first[r];
-    for (int64_t other = first[r]; other < first[r] + count[r]; ++other) to += neighbor_row[other] < j ? 1 : 0;
-    const int64_t f = from[r] + (e - first[r]);
+    const int64_t begin = first[r], end = first[r + 1];
+    int64_t to = begin;
+    for (int64_t other = begin; other < end; ++other) to += neighbor_row[other] < j ? 1 : 0;
+    const int64_t f = from[r] + (e - begin);
     sorted_neighbor[to] = j;
     io_t* values = sorted_values + to * columns;
     values[0] = area[f];
@@ -74,17 +74,18 @@ struct SortEdgesFunctor {
   }
 };
 
-// The reverse of each edge j -> i: i's place in j's sorted range, or -1.
+// The reverse of each edge j -> i: i's place in j's sorted range
+// [first[j], first[j + 1]), or -1.
 struct ReverseEdgeFunctor {
-  const int64_t* first;
-  const int64_t* count;
+  const int64_t* first;  // (n + 1,)
   const int32_t* cell_row;
   const int32_t* neighbor;  // sorted within each range
   int64_t* reverse;
 
   TV_HD void operator()(int64_t e) const {
     const int32_t i = cell_row[e], j = neighbor[e];
-    int64_t lo = first[j], hi = first[j] + count[j];  // the first entry >= i in [lo, hi)
+    const int64_t end = first[j + 1];
+    int64_t lo = first[j], hi = end;  // the first entry >= i in [lo, hi)
     while (lo < hi) {
       const int64_t mid = lo + (hi - lo) / 2;
       if (neighbor[mid] < i) {
@@ -93,7 +94,7 @@ struct ReverseEdgeFunctor {
         hi = mid;
       }
     }
-    reverse[e] = lo < first[j] + count[j] && neighbor[lo] == i ? lo : -1;
+    reverse[e] = lo < end && neighbor[lo] == i ? lo : -1;
   }
 };
 
@@ -137,29 +138,28 @@ struct SymmetricEdgeFunctor {
 // mean of their areas and of their moments, and their centroids weighted by
 // area (SymmetricEdgeFunctor); a face only one of them found (one near the
 // area floor, core::FaceAreaFloor) is kept in both directions with that
-// cell's values. Cell row r's faces are at [from[r], from[r] + count[r]) of
-// the passes' arrays (FaceTensors), and become edges [first[r], first[r] +
-// count[r]) (first: the counts' exclusive sum; E edges in all).
+// cell's values. Cell row r's faces are at [from[r], from[r] + count) of
+// the passes' arrays (FaceTensors), and become edges [first[r], first[r +
+// 1]) (first: (n + 1,), the counts' exclusive sum and E, the edges in all).
 template <typename Exec, typename io_t>
-Edges symmetric_edges(const at::Tensor& from, const at::Tensor& first, const at::Tensor& count, int64_t edges,
+Edges symmetric_edges(const at::Tensor& from, const at::Tensor& first, int64_t edges,
                       const at::Tensor& row_of_position, const FaceTensors& faces, int64_t n, bool moments) {
   const int64_t columns = moments ? 13 : 4;
   const at::Tensor& neighbor = faces.neighbor;
   const at::TensorOptions values = faces.area.options();
   const at::TensorOptions ints = neighbor.options().dtype(at::kInt);
   const at::Tensor cell_row = Exec::empty({edges}, ints), neighbor_row = Exec::empty({edges}, ints);
-  Exec::for_each(n, EdgeRowsFunctor{from.data_ptr<int64_t>(), first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
+  Exec::for_each(n, EdgeRowsFunctor{from.data_ptr<int64_t>(), first.data_ptr<int64_t>(),
                                     row_of_position.data_ptr<int32_t>(), neighbor.data_ptr<int32_t>(),
                                     cell_row.data_ptr<int32_t>(), neighbor_row.data_ptr<int32_t>()});
   const at::Tensor sorted_neighbor = Exec::empty({edges}, ints), sorted = Exec::empty({edges, columns}, values);
   Exec::for_each(edges, SortEdgesFunctor<io_t>{from.data_ptr<int64_t>(), first.data_ptr<int64_t>(),
-                                               count.data_ptr<int64_t>(), cell_row.data_ptr<int32_t>(),
-                                               neighbor_row.data_ptr<int32_t>(), faces.area.data_ptr<io_t>(),
-                                               faces.centroid.data_ptr<io_t>(),
+                                               cell_row.data_ptr<int32_t>(), neighbor_row.data_ptr<int32_t>(),
+                                               faces.area.data_ptr<io_t>(), faces.centroid.data_ptr<io_t>(),
                                                moments ? faces.moments.data_ptr<io_t>() : nullptr, columns,
                                                sorted_neighbor.data_ptr<int32_t>(), sorted.data_ptr<io_t>()});
   const at::Tensor reverse = Exec::empty({edges}, neighbor.options().dtype(at::kLong));
-  Exec::for_each(edges, ReverseEdgeFunctor{first.data_ptr<int64_t>(), count.data_ptr<int64_t>(),
+  Exec::for_each(edges, ReverseEdgeFunctor{first.data_ptr<int64_t>(),
                                            cell_row.data_ptr<int32_t>(), sorted_neighbor.data_ptr<int32_t>(),
                                            reverse.data_ptr<int64_t>()});
   Edges out{Exec::empty({2, edges}, neighbor.options().dtype(at::kLong)), Exec::empty({edges}, values),
@@ -225,12 +225,13 @@ GraphOutputs voronoi_graph_forward(const at::Tensor& points, const at::Tensor& b
     // order, or the ranges the cells claimed), as edges in row order.
     const at::Tensor count_by_row = at::zeros({n}, longs).index_copy_(0, row_of_position, faces.count.to(at::kLong));
     const at::Tensor from_by_row = at::zeros({n}, longs).index_copy_(0, row_of_position, faces.offset);
-    const at::Tensor ends = count_by_row.cumsum(0);
-    const int64_t num_edges = ends[-1].item<int64_t>();
+    const at::Tensor first = at::zeros({n + 1}, longs);
+    first.narrow(0, 1, n).copy_(count_by_row.cumsum(0));
+    const int64_t num_edges = first[n].item<int64_t>();
     Edges edges;
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "torchvor::voronoi_graph", [&] {
-      edges = symmetric_edges<Exec, scalar_t>(from_by_row, ends - count_by_row, count_by_row, num_edges,
-                                              graph.row_of_position.contiguous(), faces, n, moments);
+      edges = symmetric_edges<Exec, scalar_t>(from_by_row, first, num_edges, graph.row_of_position.contiguous(),
+                                              faces, n, moments);
     });
     edge_index = edges.edge_index;
     area = edges.area;
