@@ -142,7 +142,8 @@ for step in "${@:-cudatests}"; do
     profile) python3 benchmarks/profile_gpu.py --device cuda --sizes 1M --knn-10m 2>&1 | grep -v USDT | tee "$OUT/profile.log" ;;
     ncu)  # the first launch of a clip kernel under Nsight Compute, on a 1M jittered grid: NCU_CALL (voronoi, default, at
           # k=35; or voronoi_graph at the op's k), NCU_KERNEL (a regex of the demangled name, default ClipFunctor;
-          # e.g. 'ClipFunctor<double, double, 32, false, false, true' for the graph's tier-32 face kernel), NCU_ARGS
+          # e.g. 'ClipFunctor<double, double, .int.32, .bool.0, .bool.0, .bool.1' for the graph's tier-32 face kernel:
+          # ncu's demangled names spell template arguments as (int)32 and (bool)1), NCU_ARGS
           # more options (e.g. "--section SourceCounters": the stalls' source lines)
       python3 - >"$OUT/ncu_prep.log" 2>&1 <<'PY'
 import torch, torchvor.samples
