@@ -71,17 +71,16 @@ TORCH_LIBRARY(torchvor, m) {
       "int memory_budget=1073741824) -> (Tensor moved, Tensor volume, Tensor centroid, Tensor second_moment, "
       "Tensor status, Tensor neighbors_needed, Tensor radius, Tensor order, Tensor measures, Tensor histogram)");
   // Power (Laguerre) cells of points with weights (N,), clipped to box
-  // (B, 2, 3), for the cells `rows` (M,) int64 from their neighbour lists
-  // neighbors (M, k) int64 (torchvor::knn's, sorted by distance, -1 padded),
-  // at array tier `tier` (0-3), in float64: volume (M,), centroid (M, 3),
+  // (B, 2, 3), for the cells `rows` (M,) int64, each walking a grid of the
+  // points (of its cloud: batch), at array tier `tier` (0-6), in float64
+  // (double-double from tier 5): volume (M,), centroid (M, 3),
   // second_moment (M,), status (M,) int8 (7: EMPTY), neighbors_needed (M,)
-  // int32 (SECURITY_RADIUS_NOT_REACHED: the list was too short), radius (M,)
-  // float32, and face_count (M,) int32 (faces on neighbours and walls).
-  // weight_max (M,) float64: for each row, no point outside its list that
-  // can cut its cell weighs more (the caller checks that bound's reach:
-  // torchvor/power.py).
+  // int32 (the points the walk examined), radius (M,) float32, and
+  // face_count (M,) int32 (faces on neighbours and walls). weight_max (M,)
+  // float64: for each row, no point that can cut its cell weighs more (the
+  // caller checks that bound's reach: torchvor/power.py).
   m.def(
-      "power_cells(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, Tensor neighbors, "
+      "power_cells(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, "
       "Tensor weight_max, int tier) -> (Tensor volume, Tensor centroid, Tensor second_moment, Tensor status, "
       "Tensor neighbors_needed, Tensor radius, Tensor face_count)");
   // The faces of the same cells, cell m's from face_offsets[m] (M + 1,)
@@ -90,7 +89,7 @@ TORCH_LIBRARY(torchvor, m) {
   // face_area (F,), face_centroid (F, 3), and face_inertia (F,), the integral
   // over the face of |y - face centroid|^2.
   m.def(
-      "power_faces(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, Tensor neighbors, "
+      "power_faces(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, "
       "Tensor weight_max, int tier, Tensor face_offsets) -> (Tensor face_target, Tensor face_area, "
       "Tensor face_centroid, Tensor face_inertia)");
   // The CVT energy of voronoi_cells' cells, energy () = the sum of the second

@@ -47,7 +47,7 @@ def test_power_cells_match_the_oracle(device, gen, spread):
     n = 300
     points = _cloud(n, gen, torch.float64, device)
     weights = _weights(n, spread, gen, torch.float64, device)
-    cells = torchvor.voronoi(points, BOX, weights=weights, k=8)  # k=8: most cells retry with longer lists
+    cells = torchvor.voronoi(points, BOX, weights=weights, k=8)  # k: unused by power cells
     pts, w = points.cpu().numpy(), weights.cpu().numpy()
     box = (np.zeros(3), np.ones(3))
     status = cells.status.cpu().numpy()
@@ -233,14 +233,12 @@ def test_opcheck_power_ops(device, dtype, gen):
     weights = _weights(30, 1.0, gen, dtype, device)
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
     rows = torch.arange(30, device=device)
-    lists = torchvor.knn(points, 31, points, exclude_self=False).idx
     weight_max = weights.double().max().expand(30).contiguous()  # per row: no point weighs more
-    torch.library.opcheck(torch.ops.torchvor.power_cells.default,
-                          (points, weights, box, None, rows, lists, weight_max, 0))
-    counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, lists, weight_max, 0)[6]
+    torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 0))
+    counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 0)[6]
     offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)]).long()
     torch.library.opcheck(torch.ops.torchvor.power_faces.default,
-                          (points, weights, box, None, rows, lists, weight_max, 1, offsets))
+                          (points, weights, box, None, rows, weight_max, 1, offsets))
 
 
 def test_larger_tiers_give_the_same_cells(device, gen):
@@ -250,9 +248,8 @@ def test_larger_tiers_give_the_same_cells(device, gen):
     weights = _weights(60, 1.0, gen, torch.float64, device)
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
     rows = torch.arange(60, device=device)
-    lists = torchvor.knn(points, 61, points, exclude_self=False).idx
     weight_max = weights.max().expand(60).contiguous()
-    results = [torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, lists, weight_max, tier)
+    results = [torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, tier)
                for tier in range(7)]
     # bit for bit within a processor (tiers 0-1 on the device, 2-3 on the CPU: on CUDA
     # the two compile a * b + c apart), to rounding across them
@@ -360,18 +357,3 @@ def test_jacobian_is_the_laplacian_of_the_faces(device, gen):
         expected[i[e]] += c[e] * (x[i[e]] - x[j[e]])
     jacobian = _Jacobian.of(n, torch.stack([j, i]).to(device), c.to(device))
     torch.testing.assert_close(jacobian.apply(x.to(device)).cpu(), expected, rtol=1e-12, atol=1e-12)
-
-
-def test_needed_quantile_past_torch_quantile_limit():
-    """The smallest count that a share q of the cells needed no more than, for any number of cells."""
-    from torchvor.power import _needed_quantile
-
-    gen = torch.Generator().manual_seed(5)
-    needed = torch.randint(3, 300, (1001,), generator=gen, dtype=torch.int32)
-    ordered = torch.sort(needed).values
-    for q in (0.0, 0.5, 0.98, 0.99, 1.0):
-        assert _needed_quantile(needed, q) == int(ordered[max(math.ceil(q * needed.numel()), 1) - 1])
-    assert _needed_quantile(needed[:0], 0.98) == 0
-    many = torch.full(((1 << 24) + 5,), 7, dtype=torch.int32)
-    many[-100:] = 40
-    assert _needed_quantile(many, 0.98) == 7 and _needed_quantile(many, 1.0) == 40

@@ -323,11 +323,11 @@ def voronoi(
             all j} (:mod:`torchvor.power`). A cell may lie away from its point
             or be empty (status EMPTY, volume 0, centroid the point); a copy
             of a point with a larger weight empties its cell. Computed in
-            float64 (outputs in the points' dtype), with ``k`` the first
-            pass's neighbours (default 32, doubled for the cells that need
-            more). Volume, centroid and second moment are differentiable in
-            the weights (not in the points: that backward raises). With
-            ``periodic``, images carry their point's weight.
+            float64 (outputs in the points' dtype), each cell walking a grid
+            of the points (``k`` unused). Volume, centroid and second moment
+            are differentiable in the weights (not in the points: that
+            backward raises). With ``periodic``, images carry their point's
+            weight.
 
     Returns:
         :class:`VoronoiCells`. Exact duplicates: the lowest index keeps the cell,

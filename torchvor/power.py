@@ -5,13 +5,12 @@ with ``|y - x_i|^2 - w_i <= |y - x_j|^2 - w_j`` for every j. Equal weights
 give the Voronoi diagram. A cell may lie away from its point, or be empty.
 
 The cells come from ``torch.ops.torchvor.power_cells`` (csrc/ops/power.h):
-each cell is clipped from its point's nearest neighbours until the power
-radius of security proves it exact, in float64. This module fetches the
-neighbour lists (``torchvor::knn``), retries the cells whose lists were too
-short (twice as many neighbours, up to the whole cloud) or whose arrays
-overflowed (the next tier; the largest run on the CPU) or whose float64
-arithmetic did not resolve them (double-double, on the CPU), and gathers
-the faces. :func:`power_weights` solves for the weights by damped Newton
+each cell walks a grid of the points outwards from its own, clipped by the
+points that can reach it until the power radius of security proves it exact,
+in float64. This module bounds the weights that can reach each cell
+(_WeightBounds), retries the cells whose arrays overflowed (the next tier;
+the largest run on the CPU) or whose float64 arithmetic did not resolve them
+(double-double, on the CPU), and gathers the faces. :func:`power_weights` solves for the weights by damped Newton
 (Kitagawa, Merigot and Thibert 2019), with the power diagram's Laplacian
 as the Jacobian and conjugate gradients in torch.
 """
@@ -25,19 +24,12 @@ import torch
 
 from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells, knn as _knn
 
-# Neighbours fetched per cell in the first pass when the caller gives no k,
-# below PILOT_FROM cells; above, a pilot of about PILOT_CELLS cells (FIRST_K
-# up) sets it for the others.
-FIRST_K = 32
-PILOT_FROM = 8192
-PILOT_CELLS = 1024
 # The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float64 cells of up
 # to 64, 160, 1024, 4096 and 16384 planes, then double-double ones of 4096 and
 # 16384 (for cells from tier 4).
 LAST_FLOAT64_TIER = 4
 DOUBLE_DOUBLE_TIER = 5
 LAST_TIER = 6
-_RETRY_LIST = int(CellStatus.SECURITY_RADIUS_NOT_REACHED)
 _RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
 _RETRY_WIDER = (int(CellStatus.ILL_CONDITIONED), int(CellStatus.BOUNDARY_ERROR))
 _EMPTY = int(CellStatus.EMPTY)
@@ -193,75 +185,29 @@ def _power_reach(radius: torch.Tensor, spread: torch.Tensor) -> torch.Tensor:
     return r + torch.sqrt(r * r + spread.clamp_min(0))
 
 
-def _lists(points, batch, chunk_rows, k, cached: Optional[torch.Tensor] = None):
-    """The k nearest points of each row's point (itself among them), -1 padded:
-    the first k columns of `cached` (every row's list, longer) where it holds them."""
-    if cached is not None and cached.shape[1] >= k:
-        return cached[chunk_rows, :k].long()
-    if batch is None:
-        return _knn(points, k, points[chunk_rows], exclude_self=False).idx
-    # knn takes queries sorted by cloud; retried rows come in any order
-    query_batch, by_cloud = torch.sort(batch[chunk_rows], stable=True)
-    found = _knn(points, k, points[chunk_rows[by_cloud]], batch=batch, query_batch=query_batch, exclude_self=False).idx
-    return torch.empty_like(found).index_copy_(0, by_cloud, found)
-
-
-# Every point's list is kept (every_list) while it fits in this many memory budgets.
-LIST_BUDGETS = 4
-
-
-def every_list(points, batch, k: int, memory_budget: int) -> Optional[torch.Tensor]:
-    """(N, k) int32: every point's k nearest (itself among them), for calls
-    on the same points (power_weights' iterations); None past LIST_BUDGETS
-    memory budgets."""
-    if points.shape[0] * k * 4 > LIST_BUDGETS * memory_budget:
-        return None
-    rows = torch.arange(points.shape[0], device=points.device)
-    return torch.cat([_lists(points, batch, part, k).int() for part in _chunks(rows, k, memory_budget)])
-
-
-def _chunks(rows: torch.Tensor, k: int, memory_budget: int):
-    """Rows in chunks whose lists (k indices and distances a row) fit the budget."""
-    return rows.split(max(1, memory_budget // (16 * k)))
-
-
 def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
-                k: Optional[int] = None, memory_budget: int = DEFAULT_MEMORY_BUDGET,
-                faces=False, lists: Optional[torch.Tensor] = None,
-                rows: Optional[torch.Tensor] = None,
+                memory_budget: int = DEFAULT_MEMORY_BUDGET, faces=False, rows: Optional[torch.Tensor] = None,
                 radius_hint: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
     """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
-    ``lists``: every point's neighbour list (:func:`every_list`), to slice
-    instead of searching where it is long enough. ``rows``: (M,) int64, the
-    points whose cells to compute (default all); the others come back
-    NOT_COMPUTED (NaN outputs, no faces). ``radius_hint``: (N,) the radii
-    the cells likely have (the last ones of points whose weights moved a
-    little), for the first reach of their weight bounds (_WeightBounds).
+    ``rows``: (M,) int64, the points whose cells to compute (default all);
+    the others come back NOT_COMPUTED (NaN outputs, no faces).
+    ``radius_hint``: (N,) the radii the cells likely have (the last ones of
+    points whose weights moved a little), for the first reach of their weight
+    bounds (_WeightBounds). ``memory_budget`` bounds the faces of one op call.
 
     Returns :class:`VoronoiCells` (N,) (status EMPTY for an empty cell) and,
     with ``faces``, every computed cell's :class:`PowerFaces`; with ``faces =
-    "later"``, a function of ``lists`` that computes them (a second pass over
-    the cells, skipped where they turn out not to be needed). Not differentiable.
+    "later"``, a function that computes them (a second pass over the cells,
+    skipped where they turn out not to be needed). Not differentiable.
     """
     with torch.no_grad():
-        return _power_cells(points, weights, box, batch, k, memory_budget, faces, lists, rows, radius_hint)
-
-
-def _needed_quantile(needed: torch.Tensor, q: float) -> int:
-    """The smallest neighbour count that a share q of the cells needed no
-    more than, from the counts' histogram (torch.quantile refuses past 2^24
-    values)."""
-    if needed.numel() == 0:
-        return 0
-    covered = torch.bincount(needed.long().clamp_min(0)).cumsum(0)
-    share = torch.tensor([max(math.ceil(q * needed.numel()), 1)], dtype=covered.dtype, device=covered.device)
-    return int(torch.searchsorted(covered, share))
+        return _power_cells(points, weights, box, batch, memory_budget, faces, rows, radius_hint)
 
 
 def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> torch.Tensor:
     """The rows sorted by cloud, then by the cell of a grid of about 4 points a
     cell over their box: nearby cells run side by side and read nearby
-    neighbours (the device's caches), and their lists are alike in length."""
+    neighbours (the device's caches), and their walks are alike in length."""
     n = points.shape[0]
     g = max(1, round((n / 4) ** (1.0 / 3.0)))
     corners = box[batch] if batch is not None else box[:1].expand(n, 2, 3)
@@ -273,13 +219,12 @@ def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torc
     return torch.argsort(key)
 
 
-def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=None, rows=None, radius_hint=None):
+def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, radius_hint=None):
     n = points.shape[0]
     device = points.device
     box, counts = _clouds(points, box, batch)
     bounds = _WeightBounds(points, weights, box, batch)
     w64 = weights.double()
-    whole = int(counts.max()) + 1 if n else 1  # a list this long ends in padding: the whole cloud
     volume = points.new_full((n,), math.nan)
     centroid = points.new_full((n, 3), math.nan)
     second = points.new_full((n,), math.nan)
@@ -287,7 +232,6 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
     needed = torch.zeros(n, dtype=torch.int32, device=device)
     radius = torch.full((n,), math.nan, dtype=torch.float32, device=device)
     face_count = torch.zeros(n, dtype=torch.int32, device=device)
-    row_k = torch.zeros(n, dtype=torch.int64, device=device)
     row_tier = torch.zeros(n, dtype=torch.int64, device=device)
     row_reach = torch.zeros(n, dtype=torch.float64, device=device)  # the reach each row's bound holds for
     row_bound = torch.zeros(n, dtype=torch.float64, device=device)  # weight_max: the bound within it
@@ -298,37 +242,30 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
         row_bound[pending] = bounds.bound(pending, row_reach[pending])
 
     def run(pending):
-        """Computes the cells of `pending` (at their row_k, row_tier and
-        row_bound) until none asks for a retry; a cell that stopped on a
-        bound whose reach falls short of its own runs again with its reach."""
+        """Computes the cells of `pending` (at their row_tier and row_bound)
+        until none asks for a retry; a cell that stopped on a bound whose
+        reach falls short of its own runs again with its reach."""
         while pending.numel():
-            pass_key = row_k[pending] * (LAST_TIER + 1) + row_tier[pending]  # (k, tier) as one key
             retry = []
-            for key in torch.unique(pass_key).tolist():
-                kk, tier = divmod(key, LAST_TIER + 1)
-                group = pending[pass_key == key]
-                for rows in _chunks(group, kk, memory_budget):
-                    lists = _lists(points, batch, rows, kk, cached)
-                    out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, rows, lists,
-                                                                 row_bound[rows], tier)
-                    for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
-                        target[rows] = value
+            for tier in torch.unique(row_tier[pending]).tolist():
+                group = pending[row_tier[pending] == tier]
+                out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, group, row_bound[group], tier)
+                for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
+                    target[group] = value
                 code = status[group].long()
-                longer = (code == _RETRY_LIST) & (kk < whole)
                 overflow = (code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])
                 larger = overflow & ((tier < LAST_FLOAT64_TIER) | (tier == DOUBLE_DOUBLE_TIER))
                 wider = ((code == _RETRY_WIDER[0]) | (code == _RETRY_WIDER[1])) & (tier < DOUBLE_DOUBLE_TIER)
-                row_k[group[longer]] = min(2 * kk, whole)
                 row_tier[group[larger]] = tier + 1
                 row_tier[group[wider]] = DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER)
                 # the bound held where nothing past its reach could cut: the cell's own reach within it
-                # (an empty cell stays empty; a cell may stop on a short bound before its list's end)
+                # (an empty cell stays empty)
                 stopped = code == int(CellStatus.SUCCESS)
                 own = _power_reach(radius[group], bounds.cloud_max(group) - w64[group])
                 short = stopped & (own > row_reach[group]) & (row_bound[group] < bounds.cloud_max(group))
                 if bool(short.any()):
                     aim(group[short], radius[group[short]])
-                retry.append(group[longer | larger | wider | short])
+                retry.append(group[larger | wider | short])
             pending = torch.cat(retry) if retry else pending[:0]
 
     order = _spatial_order(points, box, batch) if n else torch.arange(0, device=device)
@@ -341,50 +278,37 @@ def _power_cells(points, weights, box, batch, k, memory_budget, faces, cached=No
     guess = GUESS * (spacing[batch] if batch is not None else spacing[0].expand(n))
     aim(order, guess[order] if radius_hint is None else radius_hint.double()[order].nan_to_num(0).maximum(
         0.5 * guess[order]))
-    if k is not None:
-        first_k = min(max(int(k), 1), whole)
-    elif order.numel() > PILOT_FROM:
-        # A pilot: an evenly spread sample of the cells, from FIRST_K neighbours
-        # up; the rest start from what 98% of it needed (plus 2).
-        pilot = order[:: order.numel() // PILOT_CELLS]
-        row_k[pilot] = min(FIRST_K, whole)
-        run(pilot)
-        first_k = min(max(_needed_quantile(needed[pilot], 0.98) + 2, 8), whole)
-        done = torch.zeros(n, dtype=torch.bool, device=device)
-        done[pilot] = True
-        order = order[~done[order]]
-    else:
-        first_k = min(FIRST_K, whole)
-    row_k[order] = first_k
     run(order)
     cells = VoronoiCells(volume, centroid, second, status, needed, radius)
     if not faces:
         return cells, None
 
-    def faces_of_the_cells(lists: Optional[torch.Tensor] = None) -> PowerFaces:
-        """The cells' faces, their lists sliced from `lists` (as `cached`) where it holds them."""
+    def faces_of_the_cells() -> PowerFaces:
         with torch.no_grad():
-            return _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget, lists)
+            return _faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget)
 
-    return cells, faces_of_the_cells if faces == "later" else faces_of_the_cells(cached)
+    return cells, faces_of_the_cells if faces == "later" else faces_of_the_cells()
 
 
-def _faces(points, weights, box, batch, row_bound, row_k, row_tier, face_count, memory_budget,
-           cached=None) -> PowerFaces:
-    """The faces of the cells with faces, computed again at their last pass's k, tier and bound."""
+# Bytes a face takes in power_faces' outputs (target, area, centroid, inertia;
+# float64) and the gathers after it: the faces of one op call fit the budget.
+FACE_BYTES = 96
+
+
+def _faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget) -> PowerFaces:
+    """The faces of the cells with faces, computed again at their last pass's tier and bound."""
     device = points.device
     with_faces = torch.nonzero(face_count > 0).flatten()
     parts = []
-    pass_key = row_k[with_faces] * (LAST_TIER + 1) + row_tier[with_faces]
-    for key in torch.unique(pass_key).tolist():
-        kk, tier = divmod(key, LAST_TIER + 1)
-        group = with_faces[pass_key == key]
-        for rows in _chunks(group, kk, memory_budget):
-            lists = _lists(points, batch, rows, kk, cached)
+    tiers = row_tier[with_faces]
+    for tier in torch.unique(tiers).tolist():
+        group = with_faces[tiers == tier]
+        pieces = max(1, math.ceil(int(face_count[group].sum()) * FACE_BYTES / memory_budget))
+        for rows in torch.tensor_split(group, pieces):
             counts = face_count[rows].long()
             offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
             target, area, centroid, inertia = torch.ops.torchvor.power_faces.default(
-                points, weights, box, batch, rows, lists, row_bound[rows], tier, offsets)
+                points, weights, box, batch, rows, row_bound[rows], tier, offsets)
             parts.append((rows.repeat_interleave(counts), target, area, centroid, inertia))
     if not parts:
         empty = torch.empty(0, dtype=torch.int64, device=device)
@@ -441,7 +365,7 @@ class _PowerCells(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, points, weights, box, batch, k, memory_budget, rows):
-        cells, faces = power_cells(points, weights, box, batch, k, memory_budget, faces=weights.requires_grad,
+        cells, faces = power_cells(points, weights, box, batch, memory_budget, faces=weights.requires_grad,
                                    rows=rows)
         ctx.faces = faces
         ctx.rows = rows
@@ -480,14 +404,16 @@ class _PowerCells(torch.autograd.Function):
 
 def voronoi(points, weights, box, batch, k, memory_budget, rows: Optional[torch.Tensor] = None) -> VoronoiCells:
     """torchvor.voronoi with weights (checked): the power cells (of `rows`
-    only, in their order, where given), differentiable in the weights."""
+    only, in their order, where given), differentiable in the weights. `k`
+    is unused (no neighbour lists: the cells walk a grid)."""
     return VoronoiCells(*_PowerCells.apply(points, weights, box, batch, k, memory_budget, rows))
 
 
 def voronoi_graph(points, weights, box, batch, k, memory_budget):
-    """torchvor.voronoi_graph with weights (checked): (cells, edge_index, area, centroid, wall_area)."""
+    """torchvor.voronoi_graph with weights (checked): (cells, edge_index, area, centroid, wall_area);
+    `k` unused."""
     with torch.no_grad():
-        cells, faces = power_cells(points, weights, box, batch, k, memory_budget, faces=True)
+        cells, faces = power_cells(points, weights, box, batch, memory_budget, faces=True)
     edge_index, area, centroid, wall_area = graph_of_faces(points.shape[0], faces, points.dtype)
     return cells, edge_index, area, centroid, wall_area
 
@@ -496,7 +422,7 @@ def voronoi_graph(points, weights, box, batch, k, memory_budget):
 
 
 @torch.library.register_fake("torchvor::power_cells")
-def _power_cells_fake(points, weights, box, batch, rows, neighbors, weight_max, tier):
+def _power_cells_fake(points, weights, box, batch, rows, weight_max, tier):
     m = rows.shape[0]
     return (points.new_empty((m,)), points.new_empty((m, 3)), points.new_empty((m,)),
             points.new_empty((m,), dtype=torch.int8), points.new_empty((m,), dtype=torch.int32),
@@ -504,7 +430,7 @@ def _power_cells_fake(points, weights, box, batch, rows, neighbors, weight_max, 
 
 
 @torch.library.register_fake("torchvor::power_faces")
-def _power_faces_fake(points, weights, box, batch, rows, neighbors, weight_max, tier, face_offsets):
+def _power_faces_fake(points, weights, box, batch, rows, weight_max, tier, face_offsets):
     f = torch.library.get_ctx().new_dynamic_size()
     return (points.new_empty((f,), dtype=torch.int64), points.new_empty((f,)), points.new_empty((f, 3)),
             points.new_empty((f,)))
@@ -643,11 +569,11 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
             the float64 solution rounded: their cells and ``error`` are those
             of the rounded weights (the rounding can leave errors of a few
             1e-6).
-        k: neighbours fetched per cell in the first pass (as :func:`voronoi`).
+        k: with ``periodic``, as :func:`torchvor.voronoi` (the plain cells
+            that size the padding); unused otherwise (power cells walk a
+            grid of the points, no neighbour lists).
         progress: print each iteration's error and step.
-        memory_budget: as :func:`torchvor.voronoi`; every point's neighbour
-            list (int32) is also kept between iterations while it fits in 4
-            budgets.
+        memory_budget: bytes of the faces that one pass computes at a time.
         weights: (N,) the weights to start from (default zeros: the Voronoi
             diagram), e.g. the previous solution of points that moved a little;
             halved towards zero while it empties a cell.
@@ -699,33 +625,24 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         weights = check_weights(points, weights, "power_weights").double()
         weights = weights - weights.mean() if n else weights
     if n == 0:
-        cells, _ = power_cells(points, weights.to(points.dtype), box_tensor, None, k, memory_budget)
+        cells, _ = power_cells(points, weights.to(points.dtype), box_tensor, None, memory_budget)
         return PowerWeights(weights.to(points.dtype), 0, 0.0, cells)
 
-    lists = None  # every point's list, as long as the cells so far needed (and a quarter more)
     hint = None  # the last cells' radii
-    first_k = k  # then what 98% of the last cells needed (plus 2): no pilot
 
     def evaluate(w, faces):
-        """(cells, faces for _jacobian (or the function of the lists that computes them) or None,
+        """(cells, faces for _jacobian (or the function that computes them) or None,
         volumes): the power diagram of weights w."""
-        nonlocal lists, first_k, hint
+        nonlocal hint
         if pbox is None:
-            # faces only for the Jacobian of a step taken and not the last (found(lists))
-            cells, found = power_cells(work, w, box64, None, first_k, memory_budget, faces=faces and "later",
-                                       lists=lists, radius_hint=hint)
+            # faces only for the Jacobian of a step taken and not the last (found())
+            cells, found = power_cells(work, w, box64, None, memory_budget, faces=faces and "later", radius_hint=hint)
             hint = cells.radius
-            # lists as long as 99% of the cells needed (and a quarter more): the longest search their own
-            wanted = min(_needed_quantile(cells.neighbors_needed, 0.99) + 1, n + 1)
-            if lists is None or lists.shape[1] < wanted:
-                lists = every_list(work, None, min(wanted * 5 // 4 + 8, n + 1), memory_budget)
         elif faces:
-            graph = _periodic.voronoi_graph(work, pbox, None, first_k, memory_budget, w)
+            graph = _periodic.voronoi_graph(work, pbox, None, k, memory_budget, w)
             cells, found = graph[0], _periodic_faces(graph, work, pbox.period[0])
         else:
-            cells, found = _periodic.voronoi(work, pbox, None, first_k, memory_budget, weights=w), None
-        if k is None:
-            first_k = _needed_quantile(cells.neighbors_needed, 0.98) + 2
+            cells, found = _periodic.voronoi(work, pbox, None, k, memory_budget, weights=w), None
         code = cells.status
         failed = (code != int(CellStatus.SUCCESS)) & (code != _EMPTY)
         if bool(failed.any()):
@@ -752,7 +669,7 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     while error > tol and iterations < max_iters:
         iterations += 1
         if callable(faces):
-            faces = faces(lists)
+            faces = faces()
         # inexact Newton: the step's residual need only fall with the error
         step = _conjugate_gradient(_jacobian(n, faces, work), target - volume, min(1e-2, 0.1 * error),
                                    10 * n + 100)

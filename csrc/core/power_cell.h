@@ -1,8 +1,11 @@
 // One cell of a power (Laguerre) diagram: the points y with
 // |y - x_i|^2 - w_i <= |y - x_j|^2 - w_j for every j, clipped to the box,
 // by the same clip as a Voronoi cell (a ConvexCell with kWeighted) from the
-// seed's nearest neighbours by distance, until the power radius of
-// security (beyond_power_security_radius) proves the cell exact.
+// points of the grid cubes around the seed, nearest shells first, until the
+// power radius of security (beyond_power_security_radius) proves the cell
+// exact. No neighbour list: the weights make the reach of a cell, and so a
+// list's length, vary by hundreds of points, and a cube holding no weight
+// that can reach the cell is skipped at a few operations.
 //
 // Unlike a Voronoi cell, a power cell need not hold its seed, and it may be
 // empty (kEmpty: volume 0, centroid the seed). A point at the seed's very
@@ -13,6 +16,7 @@
 #include <cstdint>
 
 #include "convex_cell.h"
+#include "grid_search.h"
 #include "voronoi_cell.h"
 
 namespace torchvor {
@@ -33,64 +37,123 @@ TV_HD bool power_plane_misses(T r2, T shift, T radius2) {
   return lowest > 1e-12 * (d2 + (s < 0.0 ? -s : s) + reach);
 }
 
-// `neighbors`: k global indices sorted by distance to the seed, -1 after the
-// last point of its cloud (the seed itself may be among them). `box`: lo, hi.
-// `weight_max`: no point outside the list that can cut the cell weighs more.
+// Whether no point at distance `gap` or more from the seed, of weight at most
+// `weight`, can cut a cell within sqrt(radius2) of it: the lowest value of
+// power_plane_misses over such points, at the nearest (past the radius the
+// bound grows with the distance). Skips whole cubes, rows and slabs.
+template <typename T>
+TV_HD bool power_region_misses(double gap2, double weight, T seed_weight, T radius2) {
+  const double r2 = static_cast<double>(radius2);
+  return gap2 >= r2 && power_plane_misses(gap2, static_cast<double>(seed_weight) - weight, r2);
+}
+
+// The power cell of the point `seed_index`, walking the grid of the points
+// (grid_search.h) in Chebyshev shells of cubes around the seed's own: every
+// point of a cube that may cut the cell goes to the clip, nearest shells
+// first, until no point outside the shells walked can (the power radius of
+// security, with `weight_max` the largest weight that can cut) or the shells
+// cover the grid. A cube, row or slab whose nearest point cannot cut the
+// cell even at the largest weight it holds (`cube_weight_max`, (cubes,),
+// -inf where empty; `weight_max` for rows and slabs) is skipped whole.
+// `box`: lo, hi. `batch`: the seed's grid. out.neighbors: the points examined.
 template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
-                                          const int64_t* neighbors, int64_t k, const io_t* box, T weight_max,
-                                          T relative_tolerance) {
-  const Vec3<T> seed = {T(points[3 * seed_index]), T(points[3 * seed_index + 1]), T(points[3 * seed_index + 2])};
+                                          const GridView<io_t>& grid, const io_t* cube_weight_max, int64_t batch,
+                                          const io_t* box, T weight_max, T relative_tolerance) {
+  const Vec3<io_t> seed_io = load_vec3(points + 3 * seed_index);
+  const Vec3<T> seed = {T(seed_io.x), T(seed_io.y), T(seed_io.z)};
   const T seed_weight = T(weights[seed_index]);
   const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
   const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
   cell.init_box(lo - seed, hi - seed, relative_tolerance);
   cell.spread = max_of(weight_max - seed_weight, T(0));
+  const double row_weight = static_cast<double>(weight_max);
   CellIntegrals<T> out;
-  out.status = kSecurityRadiusNotReached;  // unless the loop proves otherwise
-  out.neighbors = static_cast<int32_t>(k);
-  Vec3<T> previous = {T(0), T(0), T(0)};
-  T previous_shift = T(0);
-  bool any_previous = false;
-  for (int64_t n = 0; n < k; ++n) {
-    const int64_t j = neighbors[n];
-    if (j < 0) {  // every point of the cloud has been used
-      out.status = kSuccess;
-      out.neighbors = static_cast<int32_t>(n);
-      break;
-    }
-    if (j == seed_index) continue;
+  out.status = kSuccess;
+  int32_t examined = 0;
+  const Rings<io_t> rings(grid, batch, seed_io);
+  // The clip of one point: false once the cell is decided (EMPTY, DUPLICATE,
+  // or a failure: out.status).
+  const auto offer = [&](int64_t j) -> bool {
+    ++examined;
     const Vec3<T> r = {T(points[3 * j]) - seed.x, T(points[3 * j + 1]) - seed.y, T(points[3 * j + 2]) - seed.z};
     const T r2 = squared_norm(r);
-    if (cell.power_security_radius_reached(r2)) {
-      out.status = kSuccess;
-      out.neighbors = static_cast<int32_t>(n);
-      break;
-    }
     const T shift = seed_weight - T(weights[j]);
     if (r2 == T(0)) {  // a copy of the seed: the larger weight, then the lower index, keeps the cell
       if (shift < T(0) || (shift == T(0) && j < seed_index)) {
         out.status = shift < T(0) ? kEmpty : kDuplicate;
-        out.neighbors = static_cast<int32_t>(n + 1);
-        break;
+        return false;
       }
-      continue;
+      return true;
     }
-    // Copies among the neighbours (adjacent in the list) with equal weights
-    // give the same plane twice: clip once.
-    if (any_previous && r.x == previous.x && r.y == previous.y && r.z == previous.z && shift == previous_shift) {
-      continue;
-    }
-    previous = r;
-    previous_shift = shift;
-    any_previous = true;
-    if (power_plane_misses(r2, shift, cell.largest_radius2())) continue;
+    // A copy of a point already clipped gives the same plane again, which
+    // then misses the cell (its vertices lie within the clip's tolerance).
+    if (power_plane_misses(r2, shift, cell.largest_radius2())) return true;
     if (!cell.clip_by_power_plane(r, shift, static_cast<int32_t>(j))) {
       out.status = cell.status;
-      out.neighbors = static_cast<int32_t>(n + 1);
-      break;
+      return false;
     }
+    return true;
+  };
+  const io_t h = rings.h;
+  bool open = true;
+  for (int32_t shell = 0; open; ++shell) {
+    // Slabs, rows and cubes from the seed's outwards (center_out): nearer
+    // planes first leave fewer vertices for the farther ones to cut.
+    for (int32_t step_z = 0; step_z <= rings.last_step(2, shell) && open; ++step_z) {
+      const int32_t z = center_out(rings.cell[2], step_z);
+      if (z < rings.low(2, shell) || z > rings.high(2, shell)) continue;
+      const double gap_z = static_cast<double>(rings.gap_z(z));
+      if (power_region_misses(gap_z * gap_z, row_weight, seed_weight, cell.largest_radius2())) continue;
+      const bool z_face = z == rings.cell[2] - shell || z == rings.cell[2] + shell;
+      for (int32_t step_y = 0; step_y <= rings.last_step(1, shell) && open; ++step_y) {
+        const int32_t y = center_out(rings.cell[1], step_y);
+        if (y < rings.low(1, shell) || y > rings.high(1, shell)) continue;
+        const double gap_y = static_cast<double>(slab_gap(rings.local.y, h, y, rings.margin));
+        const double gap_yz2 = gap_z * gap_z + gap_y * gap_y;
+        if (power_region_misses(gap_yz2, row_weight, seed_weight, cell.largest_radius2())) {
+          continue;
+        }
+        const int32_t row_start = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
+        // On a face of the shell, the row's cubes; inside it, its two end cubes.
+        const bool face = z_face || y == rings.cell[1] - shell || y == rings.cell[1] + shell;
+        const int32_t last_x = face ? rings.last_step(0, shell) : 1;
+        for (int32_t step_x = 0; step_x <= last_x && open; ++step_x) {
+          const int32_t x = face ? center_out(rings.cell[0], step_x)
+                                 : rings.cell[0] + (step_x == 0 ? -shell : shell);
+          if (x < rings.low(0, shell) || x > rings.high(0, shell)) continue;
+          const double weight = static_cast<double>(cube_weight_max[row_start + x]);
+          if (!(weight > -1e308)) continue;  // an empty cube
+          const double gap_x = static_cast<double>(slab_gap(rings.local.x, h, x, rings.margin));
+          const double gap2 = gap_yz2 + gap_x * gap_x;
+          if (power_region_misses(gap2, weight, seed_weight, cell.largest_radius2())) continue;
+          const int32_t end = grid.cell_start[row_start + x + 1];
+          for (int32_t s = grid.cell_start[row_start + x]; s < end && open; ++s) {
+            const int64_t j = grid.original_index(s);
+            if (j != seed_index) open = offer(j);
+          }
+        }
+      }
+    }
+    if (!open) break;
+    // The distance from the seed to the nearest cube outside the shells walked.
+    const io_t u[3] = {rings.local.x, rings.local.y, rings.local.z};
+    double bound = 1e308;
+    bool covers_grid = true;
+    for (int a = 0; a < 3; ++a) {
+      if (rings.cell[a] - shell > 0) {
+        covers_grid = false;
+        bound = min_of(bound, static_cast<double>(u[a] - io_t(rings.cell[a] - shell) * h));
+      }
+      if (rings.cell[a] + shell < rings.dim[a] - 1) {
+        covers_grid = false;
+        bound = min_of(bound, static_cast<double>(io_t(rings.cell[a] + shell + 1) * h - u[a]));
+      }
+    }
+    bound -= static_cast<double>(rings.margin);
+    if (covers_grid || (bound > 0.0 && cell.power_security_radius_reached(T(bound * bound)))) break;
   }
+  out.neighbors = examined;
   if (out.status == kDuplicate || out.status == kEmpty) {
     out.radius = 0.0f;
     out.volume = T(0);

@@ -9,19 +9,19 @@ namespace cuda {
 
 ops::PowerCellOutputs power_cells_cuda(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
                                        const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
-                                       const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier) {
+                                       const at::Tensor& weight_max, int64_t tier) {
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::power_cells<CudaExec>(points, weights, box, batch, rows, neighbors, weight_max, tier);
+  return ops::power_cells<CudaExec>(points, weights, box, batch, rows, weight_max, tier);
 }
 
 ops::PowerFaceOutputs power_faces_cuda(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
                                        const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
-                                       const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier,
+                                       const at::Tensor& weight_max, int64_t tier,
                                        const at::Tensor& face_offsets) {
   c10::cuda::OptionalCUDAGuard guard;
   if (points.is_cuda()) guard.set_device(points.device());
-  return ops::power_faces<CudaExec>(points, weights, box, batch, rows, neighbors, weight_max, tier, face_offsets);
+  return ops::power_faces<CudaExec>(points, weights, box, batch, rows, weight_max, tier, face_offsets);
 }
 
 TORCH_LIBRARY_IMPL(torchvor, CUDA, m) {

@@ -1,9 +1,10 @@
 // torchvor::power_cells and torchvor::power_faces, shared by the CPU and
 // CUDA backends: the cells of a power diagram (core/power_cell.h) for given
-// rows from given neighbour lists, one thread a cell, in float64 whatever
-// the points' dtype. torchvor/power.py fetches the lists (torchvor::knn),
-// retries the cells whose lists were too short (more neighbours) or whose
-// arrays overflowed (the next tier), and counts, then fills, the faces.
+// rows, each walking a grid of the points (built here, with the largest
+// weight of each cube), one thread a cell, in float64 whatever the points'
+// dtype. torchvor/power.py bounds the weights that can reach each cell,
+// retries the cells whose arrays overflowed (the next tier), and counts,
+// then fills, the faces.
 #pragma once
 
 #include <ATen/ATen.h>
@@ -14,6 +15,7 @@
 #include <type_traits>
 
 #include "../core/cell_faces.h"
+#include "grid.h"
 #include "../core/power_cell.h"
 #include "../core/status.h"
 
@@ -31,6 +33,10 @@ constexpr int kLastDevicePowerTier = 1;
 constexpr int kDoubleDoublePowerTier = 5;
 constexpr int kLastPowerTier = 6;
 
+// Points a cube of the walk's grid: few, so that a cube's largest weight
+// bounds few points (a cube that cannot reach the cell is skipped whole).
+constexpr double kPowerPointsPerCube = 2.0;
+
 template <int kPlanes, typename T>
 using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, false, true>;
 
@@ -46,8 +52,8 @@ struct PowerCellFunctor {
   const io_t* box;            // (B, 2, 3)
   const int64_t* batch;       // (N,) or nullptr (one box)
   const int64_t* rows;        // (M,)
-  const int64_t* neighbors;   // (M, k)
-  int64_t k;
+  core::GridView<io_t> grid;  // of the points, one grid a cloud
+  const io_t* cube_weight_max;  // (cubes,): the largest weight of each, -inf where empty
   const double* weight_max;   // (M,)
   io_t* volume;               // (M,)
   io_t* centroid;             // (M, 3)
@@ -81,7 +87,7 @@ struct PowerCellFunctor {
     const int64_t seed = rows[m];
     const int64_t b = batch != nullptr ? batch[seed] : 0;
     const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
-        cell, points, weights, seed, neighbors + m * k, k, box + 6 * b, T(weight_max[m]),
+        cell, points, weights, seed, grid, cube_weight_max, b, box + 6 * b, T(weight_max[m]),
         T(core::ClipTolerance<T>::value));
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
@@ -125,7 +131,7 @@ struct PowerScalar {
 // The arguments both ops take, checked.
 inline void check_power_inputs(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
                                const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
-                               const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier) {
+                               const at::Tensor& weight_max, int64_t tier) {
   TORCH_CHECK_TYPE(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
                    "torchvor.power_cells: points must be float32 or float64, got ", points.scalar_type());
   TORCH_CHECK_VALUE(points.dim() == 2 && points.size(1) == 3, "torchvor.power_cells: points must be (N, 3), got ",
@@ -136,11 +142,10 @@ inline void check_power_inputs(const at::Tensor& points, const at::Tensor& weigh
                     "torchvor.power_cells: weights must be (N,), got ", weights.sizes());
   TORCH_CHECK_VALUE(box.dim() == 3 && box.size(1) == 2 && box.size(2) == 3 && box.size(0) >= 1,
                     "torchvor.power_cells: box must be (B, 2, 3), got ", box.sizes());
-  TORCH_CHECK_TYPE(rows.scalar_type() == at::kLong && neighbors.scalar_type() == at::kLong,
-                   "torchvor.power_cells: rows and neighbors must be int64");
-  TORCH_CHECK_VALUE(rows.dim() == 1 && neighbors.dim() == 2 && neighbors.size(0) == rows.size(0),
-                    "torchvor.power_cells: rows must be (M,) and neighbors (M, k), got ", rows.sizes(), " and ",
-                    neighbors.sizes());
+  TORCH_CHECK_VALUE(points.size(0) < (int64_t(1) << 31), "torchvor.power_cells: fewer than 2^31 points, got ",
+                    points.size(0));
+  TORCH_CHECK_TYPE(rows.scalar_type() == at::kLong, "torchvor.power_cells: rows must be int64");
+  TORCH_CHECK_VALUE(rows.dim() == 1, "torchvor.power_cells: rows must be (M,), got ", rows.sizes());
   TORCH_CHECK_TYPE(weight_max.scalar_type() == at::kDouble, "torchvor.power_cells: weight_max must be float64");
   TORCH_CHECK_VALUE(weight_max.dim() == 1 && weight_max.size(0) == rows.size(0),
                     "torchvor.power_cells: weight_max must be (M,), one per row");
@@ -152,7 +157,7 @@ inline void check_power_inputs(const at::Tensor& points, const at::Tensor& weigh
   }
   TORCH_CHECK_VALUE(tier >= 0 && tier <= kLastPowerTier, "torchvor.power_cells: tier must be in [0, ",
                     kLastPowerTier, "], got ", tier);
-  for (const at::Tensor* t : {&weights, &box, &rows, &neighbors, &weight_max}) {
+  for (const at::Tensor* t : {&weights, &box, &rows, &weight_max}) {
     TORCH_CHECK_VALUE(t->device() == points.device(), "torchvor.power_cells: every tensor must be on the points' device");
   }
   if (batch.has_value()) {
@@ -178,8 +183,8 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
     functor.box = base.box;
     functor.batch = base.batch;
     functor.rows = base.rows;
-    functor.neighbors = base.neighbors;
-    functor.k = base.k;
+    functor.grid = base.grid;
+    functor.cube_weight_max = base.cube_weight_max;
     functor.weight_max = base.weight_max;
     functor.volume = base.volume;
     functor.centroid = base.centroid;
@@ -211,18 +216,31 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
   }
 }
 
+// The walk's grid of the points (one a cloud of `clouds`) and the largest
+// weight of each of its cubes (-inf where empty) in `cube_weight_max`.
+template <typename Exec>
+Grid power_grid(const at::Tensor& points, const at::Tensor& weights, const c10::optional<at::Tensor>& batch,
+                int64_t clouds, at::Tensor& cube_weight_max) {
+  at::Tensor sorted_ids;
+  const Grid grid = build_grid<Exec>(points, batch, clouds, kPowerPointsPerCube, {}, {}, &sorted_ids);
+  cube_weight_max = at::full({grid.cell_start.size(0) - 1}, -INFINITY, weights.options());
+  cube_weight_max.scatter_reduce_(0, sorted_ids.to(at::kLong), weights.index_select(0, grid.sorted_index.to(at::kLong)),
+                                  "amax", /*include_self=*/true);
+  return grid;
+}
+
 // The shared body of both ops: with face_offsets, fills the faces too.
 template <typename Exec, bool kFaces>
 std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
     const at::Tensor& points_in, const at::Tensor& weights_in, const at::Tensor& box_in,
-    const c10::optional<at::Tensor>& batch_in, const at::Tensor& rows_in, const at::Tensor& neighbors_in,
-    const at::Tensor& weight_max_in, int64_t tier, const at::Tensor& face_offsets_in) {
-  check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, neighbors_in, weight_max_in, tier);
+    const c10::optional<at::Tensor>& batch_in, const at::Tensor& rows_in, const at::Tensor& weight_max_in,
+    int64_t tier, const at::Tensor& face_offsets_in) {
+  check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, weight_max_in, tier);
   // The host tiers run on the host: their tensors go there (and back).
   const bool on_host = tier > kLastDevicePowerTier && !points_in.device().is_cpu();
   const auto here = [&](const at::Tensor& t) { return (on_host ? t.cpu() : t).contiguous(); };
   const at::Tensor points = here(points_in), weights = here(weights_in), box = here(box_in);
-  const at::Tensor rows = here(rows_in), neighbors = here(neighbors_in), weight_max = here(weight_max_in);
+  const at::Tensor rows = here(rows_in), weight_max = here(weight_max_in);
   const c10::optional<at::Tensor> batch = batch_in.has_value() ? c10::optional<at::Tensor>(here(*batch_in)) : c10::nullopt;
   const int64_t m = rows.size(0);
   const at::TensorOptions options = points.options();
@@ -247,6 +265,9 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
   face_centroid = at::full({faces, 3}, NAN, options);
   face_inertia = at::full({faces}, NAN, options);
   if (m > 0) {
+    at::Tensor cube_weight_max;
+    const Grid grid = on_host ? power_grid<typename Exec::HostExec>(points, weights, batch, box.size(0), cube_weight_max)
+                              : power_grid<Exec>(points, weights, batch, box.size(0), cube_weight_max);
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "power_cells", [&] {
       PowerCellFunctor<scalar_t, 64, kFaces> functor;
       functor.points = points.data_ptr<scalar_t>();
@@ -254,8 +275,8 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
       functor.box = box.data_ptr<scalar_t>();
       functor.batch = batch.has_value() ? batch->data_ptr<int64_t>() : nullptr;
       functor.rows = rows.data_ptr<int64_t>();
-      functor.neighbors = neighbors.data_ptr<int64_t>();
-      functor.k = neighbors.size(1);
+      functor.grid = grid.view<scalar_t>();
+      functor.cube_weight_max = cube_weight_max.data_ptr<scalar_t>();
       functor.weight_max = weight_max.data_ptr<double>();
       functor.volume = volume.data_ptr<scalar_t>();
       functor.centroid = centroid.data_ptr<scalar_t>();
@@ -281,16 +302,16 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
 template <typename Exec>
 PowerCellOutputs power_cells(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
                              const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
-                             const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier) {
-  return std::get<0>(power_forward<Exec, false>(points, weights, box, batch, rows, neighbors, weight_max, tier, {}));
+                             const at::Tensor& weight_max, int64_t tier) {
+  return std::get<0>(power_forward<Exec, false>(points, weights, box, batch, rows, weight_max, tier, {}));
 }
 
 template <typename Exec>
 PowerFaceOutputs power_faces(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
                              const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
-                             const at::Tensor& neighbors, const at::Tensor& weight_max, int64_t tier,
+                             const at::Tensor& weight_max, int64_t tier,
                              const at::Tensor& face_offsets) {
-  return std::get<1>(power_forward<Exec, true>(points, weights, box, batch, rows, neighbors, weight_max, tier,
+  return std::get<1>(power_forward<Exec, true>(points, weights, box, batch, rows, weight_max, tier,
                                               face_offsets));
 }
 
