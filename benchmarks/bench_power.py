@@ -3,7 +3,7 @@ torchvor.voronoi with those weights against the plain Voronoi call on the same p
 
     python benchmarks/bench_power.py [--device cpu|cuda] [--sizes 100K,1M] [--kinds blue,white] [--dtype float64]
 
-The power call fetches its neighbour lists with torchvor.knn and clips in float64
+The power call walks a grid of the points from each cell's own and clips in float64
 (csrc/ops/power.h); the plain call is the tuned Voronoi path.
 """
 from __future__ import annotations

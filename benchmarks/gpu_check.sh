@@ -90,11 +90,12 @@ for step in "${@:-cudatests}"; do
       done ;;
     power)  # power_weights to 1e-6, then the power diagram against plain voronoi (POWER_SIZES, default 1M,10M,
             # blue and white; POWER_ARGS more options, e.g. --profile); with BASELINE, the baseline's too, once it is built
+            # (at BASELINE_POWER_SIZES, default POWER_SIZES)
       python3 benchmarks/bench_power.py --device cuda --sizes ${POWER_SIZES:-1M,10M} --repeats 3 ${POWER_ARGS:-} 2>&1 | tee "$OUT/bench_power.log"
       if [ -n "${BASELINE:-}" ]; then
         wait
         (cd /tmp && PYTHONPATH="$BASELINE" python3 "$REPO/benchmarks/bench_power.py" --device cuda \
-          --sizes ${POWER_SIZES:-1M,10M} --repeats 3) 2>&1 | tee "$OUT/bench_power_baseline.log"
+          --sizes ${BASELINE_POWER_SIZES:-${POWER_SIZES:-1M,10M}} --repeats 3) 2>&1 | tee "$OUT/bench_power_baseline.log"
       fi ;;
     graph)  # voronoi_graph and the cells' backward against voronoi (GRAPH_SIZES, default 1M,10M, blue and white);
             # with BASELINE, the baseline's too, once it is built
