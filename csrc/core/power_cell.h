@@ -37,14 +37,22 @@ TV_HD bool power_plane_misses(T r2, T shift, T radius2) {
   return lowest > 1e-12 * (d2 + (s < 0.0 ? -s : s) + reach);
 }
 
-// Whether no point at distance `gap` or more from the seed, of weight at most
-// `weight`, can cut a cell within sqrt(radius2) of it: the lowest value of
-// power_plane_misses over such points, at the nearest (past the radius the
-// bound grows with the distance). Skips whole cubes, rows and slabs.
-template <typename T>
-TV_HD bool power_region_misses(double gap2, double weight, T seed_weight, T radius2) {
-  const double r2 = static_cast<double>(radius2);
-  return gap2 >= r2 && power_plane_misses(gap2, static_cast<double>(seed_weight) - weight, r2);
+// Whether no point at squared distance `gap2` or more from the seed, of
+// weight at most `weight`, can cut a cell within sqrt(radius2) of it:
+// power_plane_misses at the nearest such point (past the radius its bound
+// grows with the distance), squared instead of a root, with room for the
+// rounding. Skips a whole cube.
+TV_HD bool power_region_misses(double gap2, double shift, double radius2) {
+  const double half = 0.5 * (gap2 + shift);
+  return gap2 >= radius2 && half > 0.0 && half * half > (1.0 + 1e-9) * gap2 * radius2 + 1e-300;
+}
+
+// The distance beyond which no point of weight at most `weight_max` can cut
+// a power cell within sqrt(radius2) of its seed (beyond_power_security_radius's
+// reach), squared, a little wide.
+TV_HD double power_reach2(double radius2, double spread) {
+  const double reach = sqrt_of(radius2) + sqrt_of(radius2 + spread);
+  return (1.0 + 1e-9) * reach * reach;
 }
 
 // The power cell of the point `seed_index`, walking the grid of the points
@@ -52,13 +60,16 @@ TV_HD bool power_region_misses(double gap2, double weight, T seed_weight, T radi
 // point of a cube that may cut the cell goes to the clip, nearest shells
 // first, until no point outside the shells walked can (the power radius of
 // security, with `weight_max` the largest weight that can cut) or the shells
-// cover the grid. A cube, row or slab whose nearest point cannot cut the
-// cell even at the largest weight it holds (`cube_weight_max`, (cubes,),
-// -inf where empty; `weight_max` for rows and slabs) is skipped whole.
-// `box`: lo, hi. `batch`: the seed's grid. out.neighbors: the points examined.
+// cover the grid. Only the slabs, rows and cubes within that reach are
+// visited, and a cube whose nearest point cannot cut the cell even at the
+// largest weight it holds (`cube_weight_max`, (cubes,), -inf where empty)
+// is skipped whole.
+// `sorted_weights`: the weights in the grid's order. `box`: lo, hi. `batch`:
+// the seed's grid. out.neighbors: the points examined.
 template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
-                                          const GridView<io_t>& grid, const io_t* cube_weight_max, int64_t batch,
+                                          const GridView<io_t>& grid, const io_t* sorted_weights,
+                                          const io_t* cube_weight_max, int64_t batch,
                                           const io_t* box, T weight_max, T relative_tolerance) {
   const Vec3<io_t> seed_io = load_vec3(points + 3 * seed_index);
   const Vec3<T> seed = {T(seed_io.x), T(seed_io.y), T(seed_io.z)};
@@ -67,18 +78,22 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
   cell.init_box(lo - seed, hi - seed, relative_tolerance);
   cell.spread = max_of(weight_max - seed_weight, T(0));
-  const double row_weight = static_cast<double>(weight_max);
   CellIntegrals<T> out;
   out.status = kSuccess;
   int32_t examined = 0;
   const Rings<io_t> rings(grid, batch, seed_io);
   // The clip of one point: false once the cell is decided (EMPTY, DUPLICATE,
   // or a failure: out.status).
-  const auto offer = [&](int64_t j) -> bool {
-    ++examined;
-    const Vec3<T> r = {T(points[3 * j]) - seed.x, T(points[3 * j + 1]) - seed.y, T(points[3 * j + 2]) - seed.z};
+  // Sorted point s, read from the grid's copies (a cube's points side by
+  // side); its index is loaded only for a clip or a copy of the seed.
+  const auto offer = [&](int32_t s) -> bool {
+    const Vec3<T> r = {T(grid.sorted_points[3 * s]) - seed.x, T(grid.sorted_points[3 * s + 1]) - seed.y,
+                       T(grid.sorted_points[3 * s + 2]) - seed.z};
     const T r2 = squared_norm(r);
-    const T shift = seed_weight - T(weights[j]);
+    const T shift = seed_weight - T(sorted_weights[s]);
+    const int64_t j = r2 == T(0) ? grid.original_index(s) : -1;
+    if (j == seed_index) return true;
+    ++examined;
     if (r2 == T(0)) {  // a copy of the seed: the larger weight, then the lower index, keeps the cell
       if (shift < T(0) || (shift == T(0) && j < seed_index)) {
         out.status = shift < T(0) ? kEmpty : kDuplicate;
@@ -89,49 +104,53 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
     // A copy of a point already clipped gives the same plane again, which
     // then misses the cell (its vertices lie within the clip's tolerance).
     if (power_plane_misses(r2, shift, cell.largest_radius2())) return true;
-    if (!cell.clip_by_power_plane(r, shift, static_cast<int32_t>(j))) {
+    if (!cell.clip_by_power_plane(r, shift, grid.original_index(s))) {
       out.status = cell.status;
       return false;
     }
     return true;
   };
   const io_t h = rings.h;
+  const double spread = static_cast<double>(cell.spread);
   bool open = true;
   for (int32_t shell = 0; open; ++shell) {
     // Slabs, rows and cubes from the seed's outwards (center_out): nearer
-    // planes first leave fewer vertices for the farther ones to cut.
+    // planes first leave fewer vertices for the farther ones to cut. Only
+    // those within the current reach, which shrinks with the cell.
     for (int32_t step_z = 0; step_z <= rings.last_step(2, shell) && open; ++step_z) {
       const int32_t z = center_out(rings.cell[2], step_z);
       if (z < rings.low(2, shell) || z > rings.high(2, shell)) continue;
       const double gap_z = static_cast<double>(rings.gap_z(z));
-      if (power_region_misses(gap_z * gap_z, row_weight, seed_weight, cell.largest_radius2())) continue;
+      if (gap_z * gap_z > power_reach2(static_cast<double>(cell.largest_radius2()), spread)) continue;
       const bool z_face = z == rings.cell[2] - shell || z == rings.cell[2] + shell;
       for (int32_t step_y = 0; step_y <= rings.last_step(1, shell) && open; ++step_y) {
         const int32_t y = center_out(rings.cell[1], step_y);
         if (y < rings.low(1, shell) || y > rings.high(1, shell)) continue;
         const double gap_y = static_cast<double>(slab_gap(rings.local.y, h, y, rings.margin));
         const double gap_yz2 = gap_z * gap_z + gap_y * gap_y;
-        if (power_region_misses(gap_yz2, row_weight, seed_weight, cell.largest_radius2())) {
-          continue;
-        }
-        const int32_t row_start = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
-        // On a face of the shell, the row's cubes; inside it, its two end cubes.
+        const double radius2 = static_cast<double>(cell.largest_radius2());
+        const double left2 = power_reach2(radius2, spread) - gap_yz2;  // the row's reach along x, squared
+        if (left2 < 0.0) continue;
+        const io_t left = io_t(sqrt_of(left2)) + rings.margin;
+        // On a face of the shell, the row's cubes within reach; inside it, its two end cubes.
         const bool face = z_face || y == rings.cell[1] - shell || y == rings.cell[1] + shell;
+        const int32_t xa = max_of(rings.low(0, shell), rings.row_cell(rings.local.x - left, -1));
+        const int32_t xb = min_of(rings.high(0, shell), rings.row_cell(rings.local.x + left, 1));
+        const int32_t row_start = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
         const int32_t last_x = face ? rings.last_step(0, shell) : 1;
         for (int32_t step_x = 0; step_x <= last_x && open; ++step_x) {
           const int32_t x = face ? center_out(rings.cell[0], step_x)
                                  : rings.cell[0] + (step_x == 0 ? -shell : shell);
-          if (x < rings.low(0, shell) || x > rings.high(0, shell)) continue;
+          if (x < xa || x > xb) continue;
           const double weight = static_cast<double>(cube_weight_max[row_start + x]);
           if (!(weight > -1e308)) continue;  // an empty cube
           const double gap_x = static_cast<double>(slab_gap(rings.local.x, h, x, rings.margin));
-          const double gap2 = gap_yz2 + gap_x * gap_x;
-          if (power_region_misses(gap2, weight, seed_weight, cell.largest_radius2())) continue;
-          const int32_t end = grid.cell_start[row_start + x + 1];
-          for (int32_t s = grid.cell_start[row_start + x]; s < end && open; ++s) {
-            const int64_t j = grid.original_index(s);
-            if (j != seed_index) open = offer(j);
+          if (power_region_misses(gap_yz2 + gap_x * gap_x, static_cast<double>(seed_weight) - weight,
+                                  static_cast<double>(cell.largest_radius2()))) {
+            continue;
           }
+          const int32_t end = grid.cell_start[row_start + x + 1];
+          for (int32_t s = grid.cell_start[row_start + x]; s < end && open; ++s) open = offer(s);
         }
       }
     }

@@ -53,6 +53,7 @@ struct PowerCellFunctor {
   const int64_t* batch;       // (N,) or nullptr (one box)
   const int64_t* rows;        // (M,)
   core::GridView<io_t> grid;  // of the points, one grid a cloud
+  const io_t* sorted_weights;   // (N,) in the grid's order
   const io_t* cube_weight_max;  // (cubes,): the largest weight of each, -inf where empty
   const double* weight_max;   // (M,)
   io_t* volume;               // (M,)
@@ -87,7 +88,7 @@ struct PowerCellFunctor {
     const int64_t seed = rows[m];
     const int64_t b = batch != nullptr ? batch[seed] : 0;
     const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
-        cell, points, weights, seed, grid, cube_weight_max, b, box + 6 * b, T(weight_max[m]),
+        cell, points, weights, seed, grid, sorted_weights, cube_weight_max, b, box + 6 * b, T(weight_max[m]),
         T(core::ClipTolerance<T>::value));
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
@@ -184,6 +185,7 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
     functor.batch = base.batch;
     functor.rows = base.rows;
     functor.grid = base.grid;
+    functor.sorted_weights = base.sorted_weights;
     functor.cube_weight_max = base.cube_weight_max;
     functor.weight_max = base.weight_max;
     functor.volume = base.volume;
@@ -216,16 +218,17 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
   }
 }
 
-// The walk's grid of the points (one a cloud of `clouds`) and the largest
-// weight of each of its cubes (-inf where empty) in `cube_weight_max`.
+// The walk's grid of the points (one a cloud of `clouds`), the weights in
+// its order (`sorted_weights`) and the largest weight of each of its cubes
+// (`cube_weight_max`, -inf where empty).
 template <typename Exec>
 Grid power_grid(const at::Tensor& points, const at::Tensor& weights, const c10::optional<at::Tensor>& batch,
-                int64_t clouds, at::Tensor& cube_weight_max) {
+                int64_t clouds, at::Tensor& sorted_weights, at::Tensor& cube_weight_max) {
   at::Tensor sorted_ids;
   const Grid grid = build_grid<Exec>(points, batch, clouds, kPowerPointsPerCube, {}, {}, &sorted_ids);
+  sorted_weights = weights.index_select(0, grid.sorted_index.to(at::kLong));
   cube_weight_max = at::full({grid.cell_start.size(0) - 1}, -INFINITY, weights.options());
-  cube_weight_max.scatter_reduce_(0, sorted_ids.to(at::kLong), weights.index_select(0, grid.sorted_index.to(at::kLong)),
-                                  "amax", /*include_self=*/true);
+  cube_weight_max.scatter_reduce_(0, sorted_ids.to(at::kLong), sorted_weights, "amax", /*include_self=*/true);
   return grid;
 }
 
@@ -265,9 +268,10 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
   face_centroid = at::full({faces, 3}, NAN, options);
   face_inertia = at::full({faces}, NAN, options);
   if (m > 0) {
-    at::Tensor cube_weight_max;
-    const Grid grid = on_host ? power_grid<typename Exec::HostExec>(points, weights, batch, box.size(0), cube_weight_max)
-                              : power_grid<Exec>(points, weights, batch, box.size(0), cube_weight_max);
+    at::Tensor sorted_weights, cube_weight_max;
+    const Grid grid =
+        on_host ? power_grid<typename Exec::HostExec>(points, weights, batch, box.size(0), sorted_weights, cube_weight_max)
+                : power_grid<Exec>(points, weights, batch, box.size(0), sorted_weights, cube_weight_max);
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "power_cells", [&] {
       PowerCellFunctor<scalar_t, 64, kFaces> functor;
       functor.points = points.data_ptr<scalar_t>();
@@ -276,6 +280,7 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
       functor.batch = batch.has_value() ? batch->data_ptr<int64_t>() : nullptr;
       functor.rows = rows.data_ptr<int64_t>();
       functor.grid = grid.view<scalar_t>();
+      functor.sorted_weights = sorted_weights.data_ptr<scalar_t>();
       functor.cube_weight_max = cube_weight_max.data_ptr<scalar_t>();
       functor.weight_max = weight_max.data_ptr<double>();
       functor.volume = volume.data_ptr<scalar_t>();
