@@ -55,17 +55,116 @@ TV_HD double power_reach2(double radius2, double spread) {
   return (1.0 + 1e-9) * reach * reach;
 }
 
-// The power cell of the point `seed_index`, walking the grid of the points
-// (grid_search.h) in Chebyshev shells of cubes around the seed's own: every
-// point of a cube that may cut the cell goes to the clip, nearest shells
-// first, until no point outside the shells walked can (the power radius of
-// security, with `weight_max` the largest weight that can cut) or the shells
-// cover the grid. Only the slabs, rows and cubes within that reach are
-// visited, and a cube whose nearest point cannot cut the cell even at the
-// largest weight it holds (`cube_weight_max`, (cubes,), -inf where empty)
-// is skipped whole.
-// `sorted_weights`: the weights in the grid's order. `box`: lo, hi. `batch`:
-// the seed's grid. out.neighbors: the points examined.
+// The walk of one power cell over the grid of the points (grid_search.h):
+// Chebyshev shells of cubes around the seed's own, and in each the slabs,
+// rows and cubes from the seed's outwards (center_out: nearer planes first
+// leave fewer vertices for the farther ones to cut), visiting only those
+// within the cell's current reach (power_reach2, which shrinks with the
+// cell) and skipping a cube whose nearest point cannot cut the cell even at
+// the largest weight it holds. A resumable iterator: next() gives one point
+// at a time, so that the threads of a warp clip in step whatever the cubes
+// each met (nested loops over them would run each thread's clips apart).
+template <typename io_t>
+struct PowerWalk {
+  const GridView<io_t>& grid;
+  const io_t* cube_weight_max;  // (cubes,), -inf where empty
+  Rings<io_t> rings;
+  double seed_weight, spread;   // spread: the largest weight that can cut, less the seed's (>= 0)
+  int32_t shell = 0, step_z = -1, step_y = 0, step_x = 0, last_x = 0;
+  int32_t z = 0, xa = 0, xb = -1, row_start = 0, s = 0, end = 0;
+  double gap_z2 = 0.0, gap_yz2 = 0.0;
+  bool z_face = false, face = false, in_slab = false, in_row = false;
+
+  TV_HD PowerWalk(const GridView<io_t>& g, const io_t* weight_max_of_cubes, int64_t batch, Vec3<io_t> seed,
+                  double seed_w, double spread_)
+      : grid(g), cube_weight_max(weight_max_of_cubes), rings(g, batch, seed), seed_weight(seed_w), spread(spread_) {}
+
+  // The next sorted point to offer the cell of squared radius `radius2`, or
+  // -1: no point left that can cut it.
+  TV_HD int32_t next(double radius2) {
+    for (;;) {
+      if (s < end) return s++;
+      if (in_row) {  // the row's next cube
+        if (++step_x > last_x) {
+          in_row = false;
+          continue;
+        }
+        const int32_t x = face ? center_out(rings.cell[0], step_x) : rings.cell[0] + (step_x == 0 ? -shell : shell);
+        if (x < xa || x > xb) continue;
+        const double weight = static_cast<double>(cube_weight_max[row_start + x]);
+        if (!(weight > -1e308)) continue;  // an empty cube
+        const double gap_x = static_cast<double>(slab_gap(rings.local.x, rings.h, x, rings.margin));
+        if (power_region_misses(gap_yz2 + gap_x * gap_x, seed_weight - weight, radius2)) continue;
+        s = grid.cell_start[row_start + x];
+        end = grid.cell_start[row_start + x + 1];
+        continue;
+      }
+      if (in_slab) {  // the slab's next row
+        if (++step_y > rings.last_step(1, shell)) {
+          in_slab = false;
+          continue;
+        }
+        const int32_t y = center_out(rings.cell[1], step_y);
+        if (y < rings.low(1, shell) || y > rings.high(1, shell)) continue;
+        const double gap_y = static_cast<double>(slab_gap(rings.local.y, rings.h, y, rings.margin));
+        gap_yz2 = gap_z2 + gap_y * gap_y;
+        const double left2 = power_reach2(radius2, spread) - gap_yz2;  // the row's reach along x, squared
+        if (left2 < 0.0) continue;
+        const io_t left = io_t(sqrt_of(left2)) + rings.margin;
+        // On a face of the shell, the row's cubes within reach; inside it, its two end cubes.
+        face = z_face || y == rings.cell[1] - shell || y == rings.cell[1] + shell;
+        xa = max_of(rings.low(0, shell), rings.row_cell(rings.local.x - left, -1));
+        xb = min_of(rings.high(0, shell), rings.row_cell(rings.local.x + left, 1));
+        row_start = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
+        last_x = face ? rings.last_step(0, shell) : 1;
+        step_x = -1;
+        in_row = true;
+        continue;
+      }
+      if (++step_z <= rings.last_step(2, shell)) {  // the shell's next slab
+        z = center_out(rings.cell[2], step_z);
+        if (z < rings.low(2, shell) || z > rings.high(2, shell)) continue;
+        const double gap_z = static_cast<double>(rings.gap_z(z));
+        gap_z2 = gap_z * gap_z;
+        if (gap_z2 > power_reach2(radius2, spread)) continue;
+        z_face = z == rings.cell[2] - shell || z == rings.cell[2] + shell;
+        step_y = -1;
+        in_slab = true;
+        continue;
+      }
+      if (finished(radius2)) return -1;
+      ++shell;
+      step_z = -1;
+    }
+  }
+
+  // Whether, shell `shell` walked, no point outside it can cut the cell:
+  // the shells cover the grid, or the nearest cube outside lies beyond the
+  // cell's reach.
+  TV_HD bool finished(double radius2) const {
+    const io_t u[3] = {rings.local.x, rings.local.y, rings.local.z};
+    double bound = 1e308;  // the distance from the seed to the nearest cube outside the shells
+    bool covers_grid = true;
+    for (int a = 0; a < 3; ++a) {
+      if (rings.cell[a] - shell > 0) {
+        covers_grid = false;
+        bound = min_of(bound, static_cast<double>(u[a] - io_t(rings.cell[a] - shell) * rings.h));
+      }
+      if (rings.cell[a] + shell < rings.dim[a] - 1) {
+        covers_grid = false;
+        bound = min_of(bound, static_cast<double>(io_t(rings.cell[a] + shell + 1) * rings.h - u[a]));
+      }
+    }
+    bound -= static_cast<double>(rings.margin);
+    return covers_grid || (bound > 0.0 && bound * bound > power_reach2(radius2, spread));
+  }
+};
+
+// The power cell of the point `seed_index`: clipped by every point of its
+// walk (PowerWalk) until none is left that can cut it (the power radius of
+// security, with `weight_max` the largest weight that can cut, or the whole
+// grid). `sorted_weights`: the weights in the grid's order. `box`: lo, hi.
+// `batch`: the seed's grid. out.neighbors: the points examined.
 template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
                                           const GridView<io_t>& grid, const io_t* sorted_weights,
@@ -81,11 +180,10 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   CellIntegrals<T> out;
   out.status = kSuccess;
   int32_t examined = 0;
-  const Rings<io_t> rings(grid, batch, seed_io);
-  // The clip of one point: false once the cell is decided (EMPTY, DUPLICATE,
-  // or a failure: out.status).
-  // Sorted point s, read from the grid's copies (a cube's points side by
-  // side); its index is loaded only for a clip or a copy of the seed.
+  // The clip by sorted point s: false once the cell is decided (EMPTY,
+  // DUPLICATE, or a failure: out.status). The point is read from the grid's
+  // copies (a cube's points side by side); its index is loaded only for a
+  // clip or a copy of the seed.
   const auto offer = [&](int32_t s) -> bool {
     const Vec3<T> r = {T(grid.sorted_points[3 * s]) - seed.x, T(grid.sorted_points[3 * s + 1]) - seed.y,
                        T(grid.sorted_points[3 * s + 2]) - seed.z};
@@ -110,67 +208,10 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
     }
     return true;
   };
-  const io_t h = rings.h;
-  const double spread = static_cast<double>(cell.spread);
-  bool open = true;
-  for (int32_t shell = 0; open; ++shell) {
-    // Slabs, rows and cubes from the seed's outwards (center_out): nearer
-    // planes first leave fewer vertices for the farther ones to cut. Only
-    // those within the current reach, which shrinks with the cell.
-    for (int32_t step_z = 0; step_z <= rings.last_step(2, shell) && open; ++step_z) {
-      const int32_t z = center_out(rings.cell[2], step_z);
-      if (z < rings.low(2, shell) || z > rings.high(2, shell)) continue;
-      const double gap_z = static_cast<double>(rings.gap_z(z));
-      if (gap_z * gap_z > power_reach2(static_cast<double>(cell.largest_radius2()), spread)) continue;
-      const bool z_face = z == rings.cell[2] - shell || z == rings.cell[2] + shell;
-      for (int32_t step_y = 0; step_y <= rings.last_step(1, shell) && open; ++step_y) {
-        const int32_t y = center_out(rings.cell[1], step_y);
-        if (y < rings.low(1, shell) || y > rings.high(1, shell)) continue;
-        const double gap_y = static_cast<double>(slab_gap(rings.local.y, h, y, rings.margin));
-        const double gap_yz2 = gap_z * gap_z + gap_y * gap_y;
-        const double radius2 = static_cast<double>(cell.largest_radius2());
-        const double left2 = power_reach2(radius2, spread) - gap_yz2;  // the row's reach along x, squared
-        if (left2 < 0.0) continue;
-        const io_t left = io_t(sqrt_of(left2)) + rings.margin;
-        // On a face of the shell, the row's cubes within reach; inside it, its two end cubes.
-        const bool face = z_face || y == rings.cell[1] - shell || y == rings.cell[1] + shell;
-        const int32_t xa = max_of(rings.low(0, shell), rings.row_cell(rings.local.x - left, -1));
-        const int32_t xb = min_of(rings.high(0, shell), rings.row_cell(rings.local.x + left, 1));
-        const int32_t row_start = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
-        const int32_t last_x = face ? rings.last_step(0, shell) : 1;
-        for (int32_t step_x = 0; step_x <= last_x && open; ++step_x) {
-          const int32_t x = face ? center_out(rings.cell[0], step_x)
-                                 : rings.cell[0] + (step_x == 0 ? -shell : shell);
-          if (x < xa || x > xb) continue;
-          const double weight = static_cast<double>(cube_weight_max[row_start + x]);
-          if (!(weight > -1e308)) continue;  // an empty cube
-          const double gap_x = static_cast<double>(slab_gap(rings.local.x, h, x, rings.margin));
-          if (power_region_misses(gap_yz2 + gap_x * gap_x, static_cast<double>(seed_weight) - weight,
-                                  static_cast<double>(cell.largest_radius2()))) {
-            continue;
-          }
-          const int32_t end = grid.cell_start[row_start + x + 1];
-          for (int32_t s = grid.cell_start[row_start + x]; s < end && open; ++s) open = offer(s);
-        }
-      }
-    }
-    if (!open) break;
-    // The distance from the seed to the nearest cube outside the shells walked.
-    const io_t u[3] = {rings.local.x, rings.local.y, rings.local.z};
-    double bound = 1e308;
-    bool covers_grid = true;
-    for (int a = 0; a < 3; ++a) {
-      if (rings.cell[a] - shell > 0) {
-        covers_grid = false;
-        bound = min_of(bound, static_cast<double>(u[a] - io_t(rings.cell[a] - shell) * h));
-      }
-      if (rings.cell[a] + shell < rings.dim[a] - 1) {
-        covers_grid = false;
-        bound = min_of(bound, static_cast<double>(io_t(rings.cell[a] + shell + 1) * h - u[a]));
-      }
-    }
-    bound -= static_cast<double>(rings.margin);
-    if (covers_grid || (bound > 0.0 && cell.power_security_radius_reached(T(bound * bound)))) break;
+  PowerWalk<io_t> walk(grid, cube_weight_max, batch, seed_io, static_cast<double>(seed_weight),
+                       static_cast<double>(cell.spread));
+  for (int32_t s = walk.next(static_cast<double>(cell.largest_radius2())); s >= 0 && offer(s);
+       s = walk.next(static_cast<double>(cell.largest_radius2()))) {
   }
   out.neighbors = examined;
   if (out.status == kDuplicate || out.status == kEmpty) {
