@@ -69,6 +69,50 @@ def test_power_cells_match_the_oracle(device, gen, spread):
         torch.testing.assert_close(cells.centroid[empty], points[empty])
 
 
+def _walk_case(kind, gen):
+    """(points (n, 3), weights (n,), box ((3,), (3,))) float64 on the CPU: clouds
+    whose cells' walks reach across the grid of the points, or past it."""
+    if kind == "clustered_in_a_wide_box":  # the grid covers the cluster only; the cells reach the walls
+        points = 0.45 + 0.1 * torch.rand(150, 3, generator=gen, dtype=torch.float64)
+        weights = torch.rand(150, generator=gen, dtype=torch.float64) * 0.002
+        return points, weights, (np.full(3, -1.0), np.full(3, 2.0))
+    if kind == "one_heavy_point":  # its plane cuts cells many cubes away
+        points = torch.rand(200, 3, generator=gen, dtype=torch.float64)
+        weights = torch.zeros(200, dtype=torch.float64)
+        weights[0] = 0.12
+        return points, weights, (np.zeros(3), np.ones(3))
+    if kind == "flat_cloud":  # one cube thick: every shell past the first is clamped along z
+        points = torch.rand(160, 3, generator=gen, dtype=torch.float64)
+        points[:, 2] = 0.5
+        weights = torch.rand(160, generator=gen, dtype=torch.float64) * 0.01
+        return points, weights, (np.zeros(3), np.ones(3))
+    # weights of a few points far above the others: many empty cells, long reaches
+    points = torch.rand(250, 3, generator=gen, dtype=torch.float64)
+    weights = torch.rand(250, generator=gen, dtype=torch.float64) * 0.002
+    weights[:5] += 0.05
+    return points, weights, (np.zeros(3), np.ones(3))
+
+
+@pytest.mark.parametrize("kind", ["clustered_in_a_wide_box", "one_heavy_point", "flat_cloud", "a_few_heavy_points"])
+def test_walks_that_reach_far_match_the_oracle(device, gen, kind):
+    """Cells whose walk over the grid of the points must reach many cubes away,
+    or past the grid to the walls, against the half-space oracle."""
+    points, weights, (lo, hi) = _walk_case(kind, gen)
+    box = torch.tensor(np.stack([lo, hi]), dtype=torch.float64, device=device)
+    cells = torchvor.voronoi(points.to(device), box, weights=weights.to(device))
+    status, volume, centroid = (t.cpu().numpy() for t in (cells.status, cells.volume, cells.centroid))
+    pts, w = points.numpy(), weights.numpy()
+    for i in range(len(pts)):
+        oracle = voronoi_cell_oracle(pts, i, (lo, hi), weights=w)
+        if oracle.empty or oracle.volume < 1e-13:
+            assert status[i] == CellStatus.EMPTY or abs(volume[i]) < 1e-12, (i, status[i], volume[i])
+            continue
+        assert status[i] == CellStatus.SUCCESS, (i, status[i])
+        assert abs(volume[i] - oracle.volume) <= 1e-9 * max(oracle.volume, 1e-6), (i, volume[i], oracle.volume)
+        assert np.abs(centroid[i] - oracle.centroid).max() <= 1e-8, i
+    assert abs(float(cells.volume.sum()) - float(np.prod(hi - lo))) < 1e-9 * float(np.prod(hi - lo))
+
+
 def test_float32_points_are_computed_in_float64(device, gen):
     points = _cloud(400, gen, torch.float32, device)
     weights = _weights(400, 1.0, gen, torch.float32, device)
