@@ -22,7 +22,7 @@ from typing import NamedTuple, Optional, Tuple
 
 import torch
 
-from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells, knn as _knn
+from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells
 
 # The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float64 cells of up
 # to 64, 160, 1024, 4096 and 16384 planes, then double-double ones of 4096 and
