@@ -136,17 +136,6 @@ TV_HD Plane<T> power_plane(Vec3<T> r, T r2, T shift) {
   return {{-r.x, -r.y, -r.z}, T(0.5) * (r2 + shift)};
 }
 
-// The radius of security of a power cell (the 2021 successor of the paper):
-// a neighbour at distance d cuts a cell within radius R of the seed only if
-// d^2 - 2 R d < w_j - w_seed, so none farther than R + sqrt(R^2 + spread)
-// can, spread = (the largest weight) - w_seed >= 0. Equal weights: 2 R.
-template <typename T>
-TV_HD bool beyond_power_security_radius(T neighbor_dist2, T cell_radius2, T spread, T tolerance) {
-  const T slack = T(1) + T(64) * tolerance;
-  const T reach = sqrt_of(cell_radius2) + sqrt_of(cell_radius2 + spread);
-  return neighbor_dist2 > slack * reach * reach;
-}
-
 // Radius of security (paper §3.1): a neighbour farther than twice the cell's
 // radius cannot cut it, nor can any later (farther) neighbour.
 template <typename T>

@@ -449,16 +449,6 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
     const T r2 = squared_norm(r);
     return clip(r, r2, power_plane(r, r2, shift), shift, owner);
   }
-  // Whether no neighbour this far (or farther) can cut the power cell.
-  TV_HD bool power_security_radius_reached(T neighbor_dist2) const {
-    static_assert(kWeighted, "power cells only");
-    if constexpr (std::is_same<T, DoubleDouble>::value) {  // in double, with room for its rounding
-      return beyond_power_security_radius(static_cast<double>(neighbor_dist2), static_cast<double>(radius2),
-                                          static_cast<double>(this->spread), 1e-14);
-    } else {
-      return beyond_power_security_radius(neighbor_dist2, radius2, this->spread, tolerance);
-    }
-  }
   // The power shift of plane q (power_plane; 0 for a box face or a Voronoi cell).
   TV_HD T shift_of(int q) const {
     if constexpr (kWeighted) {

@@ -2,10 +2,10 @@
 // |y - x_i|^2 - w_i <= |y - x_j|^2 - w_j for every j, clipped to the box,
 // by the same clip as a Voronoi cell (a ConvexCell with kWeighted) from the
 // points of the grid cubes around the seed, nearest shells first, until the
-// power radius of security (beyond_power_security_radius) proves the cell
-// exact. No neighbour list: the weights make the reach of a cell, and so a
-// list's length, vary by hundreds of points, and a cube holding no weight
-// that can reach the cell is skipped at a few operations.
+// power radius of security (power_reach2) proves the cell exact. No
+// neighbour list: the weights make the reach of a cell, and so a list's
+// length, vary by hundreds of points, and a cube holding no weight that can
+// reach the cell is skipped at a few operations.
 //
 // Unlike a Voronoi cell, a power cell need not hold its seed, and it may be
 // empty (kEmpty: volume 0, centroid the seed). A point at the seed's very
@@ -47,9 +47,11 @@ TV_HD bool power_region_misses(double gap2, double shift, double radius2) {
   return gap2 >= radius2 && half > 0.0 && half * half > (1.0 + 1e-9) * gap2 * radius2 + 1e-300;
 }
 
-// The distance beyond which no point of weight at most `weight_max` can cut
-// a power cell within sqrt(radius2) of its seed (beyond_power_security_radius's
-// reach), squared, a little wide.
+// The radius of security of a power cell (the 2021 successor of the paper),
+// squared, a little wide: a point at distance d cuts a cell within
+// sqrt(radius2) of the seed only if d^2 - 2 R d < w_j - w_seed, so none
+// farther than R + sqrt(R^2 + spread) can, spread = (the largest weight that
+// can cut) - w_seed >= 0. Equal weights: 2 R.
 TV_HD double power_reach2(double radius2, double spread) {
   const double reach = sqrt_of(radius2) + sqrt_of(radius2 + spread);
   return (1.0 + 1e-9) * reach * reach;
