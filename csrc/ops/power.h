@@ -16,6 +16,7 @@
 
 #include "../core/cell_faces.h"
 #include "grid.h"
+#include "options.h"
 #include "../core/power_cell.h"
 #include "../core/status.h"
 
@@ -24,14 +25,15 @@ namespace ops {
 
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
-// cells on the heap. Tiers 0-4 compute in float64 (the largest for the
-// cells above a dense layer of points, with thousands of faces); the last
-// two, for the cells whose float64 integrals or clips the arithmetic does not
-// resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
-constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096, 16384, 4096, 16384};
-constexpr int kLastDevicePowerTier = 1;
-constexpr int kDoubleDoublePowerTier = 5;
-constexpr int kLastPowerTier = 6;
+// cells on the heap. Tiers 0-5 compute in float64 (the first small, so that
+// the device keeps its cells in cache; the largest for the cells above a
+// dense layer of points, with thousands of faces); the last two, for the
+// cells whose float64 integrals or clips the arithmetic does not resolve
+// (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
+constexpr int kPowerTierPlanes[] = {32, 64, 160, 1024, 4096, 16384, 4096, 16384};
+constexpr int kLastDevicePowerTier = 2;
+constexpr int kDoubleDoublePowerTier = 6;
+constexpr int kLastPowerTier = 7;
 
 // Points a cube of the walk's grid: few, so that a cube's largest weight
 // bounds few points (a cube that cannot reach the cell is skipped whole).
@@ -175,7 +177,7 @@ using PowerFaceOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tens
 // Runs the functor of the pass's tier over the rows (`Exec` the backend;
 // the host tiers run on Exec::HostExec, with the tensors on the host).
 template <typename Exec, typename io_t, bool kFaces>
-void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> base) {
+void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFunctor<io_t, 64, kFaces> base) {
   const auto run = [&](auto planes, auto scalar) {
     constexpr int kPlanes = decltype(planes)::value;
     PowerCellFunctor<io_t, kPlanes, kFaces, typename decltype(scalar)::type> functor;
@@ -200,10 +202,14 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
     functor.face_area = base.face_area;
     functor.face_centroid = base.face_centroid;
     functor.face_inertia = base.face_inertia;
-    if constexpr (kPlanes > kPowerTierPlanes[kLastDevicePowerTier]) {
+    // A thread a cell, as many resident as keep their cells in cache; the
+    // double-double tiers by for_each (their products must round apart).
+    if constexpr (std::is_same<typename decltype(scalar)::type, core::DoubleDouble>::value) {
       Exec::HostExec::for_each(m, functor);
+    } else if constexpr (kPlanes > kPowerTierPlanes[kLastDevicePowerTier]) {
+      Exec::HostExec::for_each_cell(m, 0, options, functor);
     } else {
-      Exec::for_each(m, functor);
+      Exec::for_each_cell(m, 0, options, functor);
     }
   };
   using Double = PowerScalar<double>;
@@ -213,8 +219,9 @@ void run_power_tier(int64_t tier, int64_t m, PowerCellFunctor<io_t, 64, kFaces> 
     case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>(), Double()); break;
     case 3: run(std::integral_constant<int, kPowerTierPlanes[3]>(), Double()); break;
     case 4: run(std::integral_constant<int, kPowerTierPlanes[4]>(), Double()); break;
-    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), PowerScalar<core::DoubleDouble>()); break;
-    default: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
+    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), Double()); break;
+    case 6: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
+    default: run(std::integral_constant<int, kPowerTierPlanes[7]>(), PowerScalar<core::DoubleDouble>()); break;
   }
 }
 
@@ -239,6 +246,7 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
     const c10::optional<at::Tensor>& batch_in, const at::Tensor& rows_in, const at::Tensor& weight_max_in,
     int64_t tier, const at::Tensor& face_offsets_in) {
   check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, weight_max_in, tier);
+  const Options tuning = Options::from_environment();
   // The host tiers run on the host: their tensors go there (and back).
   const bool on_host = tier > kLastDevicePowerTier && !points_in.device().is_cpu();
   const auto here = [&](const at::Tensor& t) { return (on_host ? t.cpu() : t).contiguous(); };
@@ -295,7 +303,7 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
       functor.face_area = face_area.data_ptr<scalar_t>();
       functor.face_centroid = face_centroid.data_ptr<scalar_t>();
       functor.face_inertia = face_inertia.data_ptr<scalar_t>();
-      run_power_tier<Exec, scalar_t, kFaces>(tier, m, functor);
+      run_power_tier<Exec, scalar_t, kFaces>(tier, m, tuning, functor);
     });
   }
   const auto back = [&](const at::Tensor& t) { return on_host ? t.to(points_in.device()) : t; };
