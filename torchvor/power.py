@@ -25,11 +25,11 @@ import torch
 from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells
 
 # The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float64 cells of up
-# to 32, 64, 160, 1024, 4096 and 16384 planes, then double-double ones of 4096
-# and 16384 (for cells from tier 5).
-LAST_FLOAT64_TIER = 5
-DOUBLE_DOUBLE_TIER = 6
-LAST_TIER = 7
+# to 64, 160, 1024, 4096 and 16384 planes, then double-double ones of 4096 and
+# 16384 (for cells from tier 4).
+LAST_FLOAT64_TIER = 4
+DOUBLE_DOUBLE_TIER = 5
+LAST_TIER = 6
 _RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
 _RETRY_WIDER = (int(CellStatus.ILL_CONDITIONED), int(CellStatus.BOUNDARY_ERROR))
 _EMPTY = int(CellStatus.EMPTY)

@@ -110,6 +110,13 @@ struct CpuExec {
     });
   }
 
+  // A thread per item of long, irregular work that carries the CPU time
+  // (power cells walking the grid): as for_each_cell.
+  template <typename Functor>
+  static void for_each_walk(int64_t n, const ops::Options& options, const Functor& functor) {
+    for_each_cell(n, 0, options, functor);
+  }
+
   // functor(i, lanes, arrays) with a group of one lane (core::SingleLane) and
   // one Arrays per thread, reused from item to item.
   template <typename Arrays, typename Functor>

@@ -373,6 +373,14 @@ struct CudaExec {
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
 
+  // A thread per item of long, irregular work (power cells walking the
+  // grid), every thread the GPU holds resident: capped as for_each_cell, the
+  // power cells ran slower (docs/performance.md).
+  template <typename Functor>
+  static void for_each_walk(int64_t n, const ops::Options& /*options*/, const Functor& functor) {
+    for_each(n, functor);
+  }
+
   // functor(i, arena) with `bytes_per_item` of scratch per item, in shared
   // memory (at most half of an SM's per block, so that two blocks fit; fewer
   // threads per block for large scratch), or in global memory beyond that.

@@ -25,15 +25,14 @@ namespace ops {
 
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
-// cells on the heap. Tiers 0-5 compute in float64 (the first small, so that
-// the device keeps its cells in cache; the largest for the cells above a
-// dense layer of points, with thousands of faces); the last two, for the
-// cells whose float64 integrals or clips the arithmetic does not resolve
-// (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
-constexpr int kPowerTierPlanes[] = {32, 64, 160, 1024, 4096, 16384, 4096, 16384};
-constexpr int kLastDevicePowerTier = 2;
-constexpr int kDoubleDoublePowerTier = 6;
-constexpr int kLastPowerTier = 7;
+// cells on the heap. Tiers 0-4 compute in float64 (the largest for the
+// cells above a dense layer of points, with thousands of faces); the last
+// two, for the cells whose float64 integrals or clips the arithmetic does not
+// resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
+constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096, 16384, 4096, 16384};
+constexpr int kLastDevicePowerTier = 1;
+constexpr int kDoubleDoublePowerTier = 5;
+constexpr int kLastPowerTier = 6;
 
 // Points a cube of the walk's grid: few, so that a cube's largest weight
 // bounds few points (a cube that cannot reach the cell is skipped whole).
@@ -202,14 +201,13 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
     functor.face_area = base.face_area;
     functor.face_centroid = base.face_centroid;
     functor.face_inertia = base.face_inertia;
-    // A thread a cell, as many resident as keep their cells in cache; the
-    // double-double tiers by for_each (their products must round apart).
+    // The double-double tiers by for_each: their products must round apart.
     if constexpr (std::is_same<typename decltype(scalar)::type, core::DoubleDouble>::value) {
       Exec::HostExec::for_each(m, functor);
     } else if constexpr (kPlanes > kPowerTierPlanes[kLastDevicePowerTier]) {
-      Exec::HostExec::for_each_cell(m, 0, options, functor);
+      Exec::HostExec::for_each_walk(m, options, functor);
     } else {
-      Exec::for_each_cell(m, 0, options, functor);
+      Exec::for_each_walk(m, options, functor);
     }
   };
   using Double = PowerScalar<double>;
@@ -219,9 +217,8 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
     case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>(), Double()); break;
     case 3: run(std::integral_constant<int, kPowerTierPlanes[3]>(), Double()); break;
     case 4: run(std::integral_constant<int, kPowerTierPlanes[4]>(), Double()); break;
-    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), Double()); break;
-    case 6: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
-    default: run(std::integral_constant<int, kPowerTierPlanes[7]>(), PowerScalar<core::DoubleDouble>()); break;
+    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), PowerScalar<core::DoubleDouble>()); break;
+    default: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
   }
 }
 
