@@ -78,11 +78,17 @@ TORCH_LIBRARY(torchvor, m) {
   // int32 (the points the walk examined), radius (M,) float32, and
   // face_count (M,) int32 (faces on neighbours and walls). weight_max (M,)
   // float64: for each row, no point that can cut its cell weighs more (the
-  // caller checks that bound's reach: torchvor/power.py).
+  // caller checks that bound's reach: torchvor/power.py). With face_room
+  // > 0, the cells' faces too, as power_faces gives them, in arrays of
+  // M * face_room rows that each cell claims a range of: face_first (M,)
+  // int64, the cell's first row (-1: no faces, or the arrays were full and
+  // its faces are not written; the ranges' order is the threads'); otherwise
+  // face_first and the arrays empty.
   m.def(
       "power_cells(Tensor points, Tensor weights, Tensor box, Tensor? batch, Tensor rows, "
-      "Tensor weight_max, int tier) -> (Tensor volume, Tensor centroid, Tensor second_moment, Tensor status, "
-      "Tensor neighbors_needed, Tensor radius, Tensor face_count)");
+      "Tensor weight_max, int tier, int face_room=0) -> (Tensor volume, Tensor centroid, Tensor second_moment, "
+      "Tensor status, Tensor neighbors_needed, Tensor radius, Tensor face_count, Tensor face_first, "
+      "Tensor face_target, Tensor face_area, Tensor face_centroid, Tensor face_inertia)");
   // The faces of the same cells, cell m's from face_offsets[m] (M + 1,)
   // int64 (the running sum of power_cells' face_count): face_target (F,)
   // int64, the neighbour's index or -1 - wall (walls -x, +x, -y, +y, -z, +z),

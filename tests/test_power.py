@@ -274,10 +274,49 @@ def test_opcheck_power_ops(device, dtype, gen):
     rows = torch.arange(30, device=device)
     weight_max = weights.double().max().expand(30).contiguous()  # per row: no point weighs more
     torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 0))
+    # the cells claiming their faces' rows, in an order the threads decide: the
+    # checks that compare two runs' outputs do not apply
+    torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 0, 20),
+                          test_utils=("test_autograd_registration", "test_faketensor"))
     counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 0)[6]
     offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)]).long()
     torch.library.opcheck(torch.ops.torchvor.power_faces.default,
                           (points, weights, box, None, rows, weight_max, 1, offsets))
+
+
+def _sorted_faces(faces):
+    """PowerFaces as a tuple of tensors in (cell, target) order."""
+    order = torch.argsort(faces.cell * (1 << 32) + faces.target + 7)
+    return tuple(t[order] for t in faces)
+
+
+def test_claimed_faces_are_the_face_pass_faces(device, gen, monkeypatch):
+    """The faces the cells' own pass writes (each cell claiming its rows) are the
+    second pass's (power_faces), to the rounding of the two compiled copies (a * b
+    + c fused in one, not in the other), also where the room runs out part of the
+    way (the rest from the second pass)."""
+    from torchvor import power
+
+    points = _cloud(400, gen, torch.float64, device)
+    weights = _weights(400, 2.0, gen, torch.float64, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
+    _cells, claimed = power.power_cells(points, weights, box, faces=True)
+    count = torch.ops.torchvor.power_cells.default(points, weights, box, None, torch.arange(400, device=device),
+                                                   weights.max().expand(400).contiguous(), 0, 20)
+    assert bool(((count[7] >= 0) == (count[6] > 0)).all()), "room for 20 faces a cell: every cell with faces claims"
+    assert bool((count[3] == CellStatus.EMPTY).any())
+    seen = []
+    real_faces = power._faces
+    monkeypatch.setattr(power, "_faces", lambda *a: seen.append(int((a[6] > 0).sum())) or real_faces(*a))
+    monkeypatch.setattr(power, "FACE_ROOM", 6)  # fewer than the cells have on average: the room runs out
+    _cells, mixed = power.power_cells(points, weights, box, faces=True)
+    assert seen and 0 < seen[0] < 400, seen
+    monkeypatch.setattr(power, "FACE_ROOM", 1)
+    _cells, second = power.power_cells(points, weights, box, faces=True, memory_budget=1 << 12)
+    for a, b, c in zip(_sorted_faces(claimed), _sorted_faces(mixed), _sorted_faces(second)):
+        exact = not a.is_floating_point()  # the cells and targets
+        torch.testing.assert_close(a, c, rtol=0 if exact else 1e-12, atol=0 if exact else 1e-18)
+        torch.testing.assert_close(b, c, rtol=0 if exact else 1e-12, atol=0 if exact else 1e-18)
 
 
 def test_larger_tiers_give_the_same_cells(device, gen):

@@ -196,9 +196,10 @@ def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, 
     bounds (_WeightBounds). ``memory_budget`` bounds the faces of one op call.
 
     Returns :class:`VoronoiCells` (N,) (status EMPTY for an empty cell) and,
-    with ``faces``, every computed cell's :class:`PowerFaces`; with ``faces =
-    "later"``, a function that computes them (a second pass over the cells,
-    skipped where they turn out not to be needed). Not differentiable.
+    with ``faces``, every computed cell's :class:`PowerFaces` (the cells' own
+    pass writes them; a second pass only where its room ran out); with
+    ``faces = "later"``, a function that gathers them, skipped where they turn
+    out not to be needed. Not differentiable.
     """
     with torch.no_grad():
         return _power_cells(points, weights, box, batch, memory_budget, faces, rows, radius_hint)
@@ -235,6 +236,13 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
     row_tier = torch.zeros(n, dtype=torch.int64, device=device)
     row_reach = torch.zeros(n, dtype=torch.float64, device=device)  # the reach each row's bound holds for
     row_bound = torch.zeros(n, dtype=torch.float64, device=device)  # weight_max: the bound within it
+    # With faces, each op call's cells claim their faces' rows (face_room a cell): the
+    # calls' face arrays (`claims`), and for each row its last call and first face there.
+    face_room = FACE_ROOM if faces else 0
+    rows_a_call = max(1, memory_budget // (FACE_ROOM * FACE_BYTES)) if faces else None
+    claims = []
+    row_call = torch.full((n,), -1, dtype=torch.int64, device=device)
+    row_first = torch.full((n,), -1, dtype=torch.int64, device=device)
 
     def aim(pending, r):
         """The rows `pending` bounded for cells of radius `r` (M,) (a tenth more)."""
@@ -249,9 +257,15 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
             retry = []
             for tier in torch.unique(row_tier[pending]).tolist():
                 group = pending[row_tier[pending] == tier]
-                out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, group, row_bound[group], tier)
-                for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
-                    target[group] = value
+                for part in (torch.split(group, rows_a_call) if faces else (group,)):
+                    out = torch.ops.torchvor.power_cells.default(points, weights, box, batch, part, row_bound[part],
+                                                                 tier, face_room)
+                    for target, value in zip((volume, centroid, second, status, needed, radius, face_count), out):
+                        target[part] = value
+                    if faces:
+                        row_call[part] = len(claims)
+                        row_first[part] = out[7]
+                        claims.append(out[8:])
                 code = status[group].long()
                 overflow = (code == _RETRY_TIER[0]) | (code == _RETRY_TIER[1])
                 larger = overflow & ((tier < LAST_FLOAT64_TIER) | (tier == DOUBLE_DOUBLE_TIER))
@@ -285,7 +299,8 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
 
     def faces_of_the_cells() -> PowerFaces:
         with torch.no_grad():
-            return _faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget)
+            return _claimed_faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget,
+                                  claims, row_call, row_first)
 
     return cells, faces_of_the_cells if faces == "later" else faces_of_the_cells()
 
@@ -293,6 +308,37 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
 # Bytes a face takes in power_faces' outputs (target, area, centroid, inertia;
 # float64) and the gathers after it: the faces of one op call fit the budget.
 FACE_BYTES = 96
+# The faces' rows a cell's power_cells call keeps room for (a cell claims as many
+# as it has, so the room is the mean it allows: Voronoi cells of white noise have
+# 15.5 on average); a call whose cells run out of room leaves the rest to a second
+# pass (power_faces).
+FACE_ROOM = 20
+
+
+def _claimed_faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget, claims, row_call,
+                   row_first) -> PowerFaces:
+    """The faces the cells claimed in their last power_cells call, in row order,
+    and those of the cells whose call ran out of room (_faces, a second pass)."""
+    with_faces = face_count > 0
+    claimed = with_faces & (row_first >= 0)
+    rows = torch.nonzero(claimed).flatten()
+    counts = face_count[rows].long()
+    call_start = torch.tensor([0] + [c[0].shape[0] for c in claims], dtype=torch.int64,
+                              device=points.device).cumsum(0)
+    first = call_start[row_call[rows]] + row_first[rows]
+    starts = counts.cumsum(0) - counts
+    index = (first - starts).repeat_interleave(counts) + torch.arange(int(counts.sum()), device=points.device)
+    columns = [torch.cat(column) if len(claims) > 1 else column[0] for column in zip(*claims)] if claims else None
+    parts = []
+    if rows.numel():
+        parts.append(PowerFaces(rows.repeat_interleave(counts), *(column.index_select(0, index) for column in columns)))
+    rest = with_faces & ~claimed
+    if bool(rest.any()):
+        parts.append(_faces(points, weights, box, batch, row_bound, row_tier, torch.where(rest, face_count, 0),
+                            memory_budget))
+    if not parts:
+        return _faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget)
+    return parts[0] if len(parts) == 1 else PowerFaces(*(torch.cat(column) for column in zip(*parts)))
 
 
 def _faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget) -> PowerFaces:
@@ -422,11 +468,15 @@ def voronoi_graph(points, weights, box, batch, k, memory_budget):
 
 
 @torch.library.register_fake("torchvor::power_cells")
-def _power_cells_fake(points, weights, box, batch, rows, weight_max, tier):
+def _power_cells_fake(points, weights, box, batch, rows, weight_max, tier, face_room=0):
     m = rows.shape[0]
+    f = m * face_room
     return (points.new_empty((m,)), points.new_empty((m, 3)), points.new_empty((m,)),
             points.new_empty((m,), dtype=torch.int8), points.new_empty((m,), dtype=torch.int32),
-            points.new_empty((m,), dtype=torch.float32), points.new_empty((m,), dtype=torch.int32))
+            points.new_empty((m,), dtype=torch.float32), points.new_empty((m,), dtype=torch.int32),
+            points.new_empty((m if face_room > 0 else 0,), dtype=torch.int64),
+            points.new_empty((f,), dtype=torch.int64), points.new_empty((f,)), points.new_empty((f, 3)),
+            points.new_empty((f,)))
 
 
 @torch.library.register_fake("torchvor::power_faces")
@@ -635,7 +685,7 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         volumes): the power diagram of weights w."""
         nonlocal hint
         if pbox is None:
-            # faces only for the Jacobian of a step taken and not the last (found())
+            # faces gathered only for the Jacobian of a step taken and not the last
             cells, found = power_cells(work, w, box64, None, memory_budget, faces=faces and "later", radius_hint=hint)
             hint = cells.radius
         elif faces:

@@ -45,7 +45,10 @@ using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, false, true>;
 // count (neighbour faces and wall faces); with kFaces, also its faces from
 // face_offsets[m] on (target: the neighbour's index, or -1 - wall for the
 // box walls -x, +x, -y, +y, -z, +z; area; centroid; inertia, the integral
-// over the face of |y - centroid|^2: the weights' gradients' term).
+// over the face of |y - centroid|^2: the weights' gradients' term). Without
+// kFaces but with `next_face`, the cell claims a range of the faces' arrays
+// as long as its face count and writes its faces there (face_first[m]: the
+// range's start; -1: no faces, or past `capacity`, none written).
 template <typename io_t, int kPlanes, bool kFaces, typename T = double>
 struct PowerCellFunctor {
   const io_t* points;         // (N, 3)
@@ -69,6 +72,9 @@ struct PowerCellFunctor {
   io_t* face_area;              // kFaces: (F,)
   io_t* face_centroid;          // kFaces: (F, 3)
   io_t* face_inertia;           // kFaces: (F,)
+  unsigned long long* next_face;  // claims: the arrays' first free row, or nullptr
+  int64_t capacity;               // claims: the arrays' rows
+  int64_t* face_first;            // claims: (M,)
 
   using Cell = PowerCell<kPlanes, T>;
   static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
@@ -106,19 +112,31 @@ struct PowerCellFunctor {
       const auto target_of = [&](int q, const core::Plane<T>&) -> int32_t {
         return q < core::kBoxPlanes ? core::wall_target(q) : cell.owner_of(q);
       };
-      const auto emit = [&](int, int32_t target, const core::Face<T>& face) {
-        if constexpr (kFaces) {
-          const int64_t f = face_offsets[m] + faces;
-          face_target[f] = target;
-          face_area[f] = io_t(face.area);
-          face_centroid[3 * f] = io_t(at.x + double(face.centroid.x));
-          face_centroid[3 * f + 1] = io_t(at.y + double(face.centroid.y));
-          face_centroid[3 * f + 2] = io_t(at.z + double(face.centroid.z));
-          face_inertia[f] = io_t(face.second[0] + face.second[1] + face.second[2]);
-        }
-        ++faces;
+      const auto store = [&](int64_t f, int32_t target, const core::Face<T>& face) {
+        face_target[f] = target;
+        face_area[f] = io_t(face.area);
+        face_centroid[3 * f] = io_t(at.x + double(face.centroid.x));
+        face_centroid[3 * f + 1] = io_t(at.y + double(face.centroid.y));
+        face_centroid[3 * f + 2] = io_t(at.z + double(face.centroid.z));
+        face_inertia[f] = io_t(face.second[0] + face.second[1] + face.second[2]);
       };
-      core::for_each_face<kFaces>(cell, target_of, emit);
+      core::for_each_face<kFaces>(cell, target_of, [&](int, int32_t target, const core::Face<T>& face) {
+        if constexpr (kFaces) store(face_offsets[m] + faces, target, face);
+        ++faces;
+      });
+      if constexpr (!kFaces) {
+        if (next_face != nullptr && faces > 0) {  // counted: claim that many rows, then write them
+          const int64_t first = int64_t(core::fetch_add(next_face, static_cast<unsigned long long>(faces)));
+          if (first + faces <= capacity) {
+            int32_t slot = 0;
+            core::for_each_face<true>(cell, target_of, [&](int, int32_t target, const core::Face<T>& face) {
+              if (slot < faces) store(first + slot, target, face);
+              ++slot;
+            });
+            face_first[m] = first;
+          }
+        }
+      }
     }
     face_count[m] = faces;
   }
@@ -172,6 +190,10 @@ inline void check_power_inputs(const at::Tensor& points, const at::Tensor& weigh
 using PowerCellOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 // face_target (F,) int64, face_area (F,), face_centroid (F, 3), face_inertia (F,).
 using PowerFaceOutputs = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
+// power_cells: the cells' outputs, then face_first (M,) int64 and the faces
+// the cells claimed (F = M * face_room rows, PowerFaceOutputs' layout).
+using PowerCellsAndFaces = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
+                                      at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>;
 
 // Runs the functor of the pass's tier over the rows (`Exec` the backend;
 // the host tiers run on Exec::HostExec, with the tensors on the host).
@@ -201,6 +223,9 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
     functor.face_area = base.face_area;
     functor.face_centroid = base.face_centroid;
     functor.face_inertia = base.face_inertia;
+    functor.next_face = base.next_face;
+    functor.capacity = base.capacity;
+    functor.face_first = base.face_first;
     // The double-double tiers by for_each: their products must round apart.
     if constexpr (std::is_same<typename decltype(scalar)::type, core::DoubleDouble>::value) {
       Exec::HostExec::for_each(m, functor);
@@ -236,13 +261,15 @@ Grid power_grid(const at::Tensor& points, const at::Tensor& weights, const c10::
   return grid;
 }
 
-// The shared body of both ops: with face_offsets, fills the faces too.
+// The shared body of both ops: with face_offsets, fills the faces too;
+// without, with face_room > 0, the cells claim the faces' rows (face_first).
 template <typename Exec, bool kFaces>
-std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
+std::tuple<PowerCellOutputs, at::Tensor, PowerFaceOutputs> power_forward(
     const at::Tensor& points_in, const at::Tensor& weights_in, const at::Tensor& box_in,
     const c10::optional<at::Tensor>& batch_in, const at::Tensor& rows_in, const at::Tensor& weight_max_in,
-    int64_t tier, const at::Tensor& face_offsets_in) {
+    int64_t tier, const at::Tensor& face_offsets_in, int64_t face_room) {
   check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, weight_max_in, tier);
+  TORCH_CHECK_VALUE(face_room >= 0, "torchvor.power_cells: face_room must be >= 0, got ", face_room);
   const Options tuning = Options::from_environment();
   // The host tiers run on the host: their tensors go there (and back).
   const bool on_host = tier > kLastDevicePowerTier && !points_in.device().is_cpu();
@@ -267,7 +294,12 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
                       "torchvor.power_faces: face_offsets must be (M + 1,) int64");
     faces = face_offsets[m].item<int64_t>();
     TORCH_CHECK_VALUE(faces >= 0, "torchvor.power_faces: face_offsets must end at the face count");
+  } else {
+    faces = m * face_room;
   }
+  at::Tensor face_first = at::full({!kFaces && face_room > 0 ? m : 0}, int64_t(-1), options.dtype(at::kLong));
+  at::Tensor next_face;  // claims' counter
+  if (!kFaces && faces > 0) next_face = at::zeros({1}, options.dtype(at::kLong));
   face_target = at::full({faces}, int64_t(-7), options.dtype(at::kLong));
   face_area = at::full({faces}, NAN, options);
   face_centroid = at::full({faces, 3}, NAN, options);
@@ -300,20 +332,29 @@ std::tuple<PowerCellOutputs, PowerFaceOutputs> power_forward(
       functor.face_area = face_area.data_ptr<scalar_t>();
       functor.face_centroid = face_centroid.data_ptr<scalar_t>();
       functor.face_inertia = face_inertia.data_ptr<scalar_t>();
+      functor.next_face =
+          next_face.defined() ? reinterpret_cast<unsigned long long*>(next_face.data_ptr<int64_t>()) : nullptr;
+      functor.capacity = faces;
+      functor.face_first = face_first.data_ptr<int64_t>();
       run_power_tier<Exec, scalar_t, kFaces>(tier, m, tuning, functor);
     });
   }
   const auto back = [&](const at::Tensor& t) { return on_host ? t.to(points_in.device()) : t; };
   return {PowerCellOutputs{back(volume), back(centroid), back(second_moment), back(status), back(needed), back(radius),
                            back(face_count)},
+          back(face_first),
           PowerFaceOutputs{back(face_target), back(face_area), back(face_centroid), back(face_inertia)}};
 }
 
 template <typename Exec>
-PowerCellOutputs power_cells(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
-                             const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
-                             const at::Tensor& weight_max, int64_t tier) {
-  return std::get<0>(power_forward<Exec, false>(points, weights, box, batch, rows, weight_max, tier, {}));
+PowerCellsAndFaces power_cells(const at::Tensor& points, const at::Tensor& weights, const at::Tensor& box,
+                               const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
+                               const at::Tensor& weight_max, int64_t tier, int64_t face_room) {
+  const auto out = power_forward<Exec, false>(points, weights, box, batch, rows, weight_max, tier, {}, face_room);
+  const PowerCellOutputs& c = std::get<0>(out);
+  const PowerFaceOutputs& f = std::get<2>(out);
+  return {std::get<0>(c), std::get<1>(c), std::get<2>(c), std::get<3>(c), std::get<4>(c), std::get<5>(c),
+          std::get<6>(c), std::get<1>(out), std::get<0>(f), std::get<1>(f), std::get<2>(f), std::get<3>(f)};
 }
 
 template <typename Exec>
@@ -321,8 +362,8 @@ PowerFaceOutputs power_faces(const at::Tensor& points, const at::Tensor& weights
                              const c10::optional<at::Tensor>& batch, const at::Tensor& rows,
                              const at::Tensor& weight_max, int64_t tier,
                              const at::Tensor& face_offsets) {
-  return std::get<1>(power_forward<Exec, true>(points, weights, box, batch, rows, weight_max, tier,
-                                              face_offsets));
+  return std::get<2>(power_forward<Exec, true>(points, weights, box, batch, rows, weight_max, tier,
+                                              face_offsets, 0));
 }
 
 }  // namespace ops
