@@ -41,15 +41,19 @@ constexpr double kPowerPointsPerCube = 2.0;
 template <int kPlanes, typename T>
 using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, false, true>;
 
+// What a power cell does with its faces: counts them; counts them, claims a
+// range of the faces' arrays that long and writes them there; or writes them
+// at offsets given. Each its own kernel: the claims' code slowed the count's.
+enum class PowerFaceMode { kCount, kClaim, kFill };
+
 // Cell m of `rows`: its integrals, status, neighbours used, radius and face
-// count (neighbour faces and wall faces); with kFaces, also its faces from
+// count (neighbour faces and wall faces); with kFill, also its faces from
 // face_offsets[m] on (target: the neighbour's index, or -1 - wall for the
 // box walls -x, +x, -y, +y, -z, +z; area; centroid; inertia, the integral
-// over the face of |y - centroid|^2: the weights' gradients' term). Without
-// kFaces but with `next_face`, the cell claims a range of the faces' arrays
-// as long as its face count and writes its faces there (face_first[m]: the
-// range's start; -1: no faces, or past `capacity`, none written).
-template <typename io_t, int kPlanes, bool kFaces, typename T = double>
+// over the face of |y - centroid|^2: the weights' gradients' term); with
+// kClaim, the same in a range it claims from `next_face` (face_first[m]:
+// the range's start; -1: no faces, or past `capacity`, none written).
+template <typename io_t, int kPlanes, PowerFaceMode kMode, typename T = double>
 struct PowerCellFunctor {
   const io_t* points;         // (N, 3)
   const io_t* weights;        // (N,)
@@ -67,14 +71,14 @@ struct PowerCellFunctor {
   int32_t* needed;            // (M,)
   float* radius;              // (M,)
   int32_t* face_count;        // (M,)
-  const int64_t* face_offsets;  // kFaces: (M + 1,)
-  int64_t* face_target;         // kFaces: (F,)
-  io_t* face_area;              // kFaces: (F,)
-  io_t* face_centroid;          // kFaces: (F, 3)
-  io_t* face_inertia;           // kFaces: (F,)
-  unsigned long long* next_face;  // claims: the arrays' first free row, or nullptr
-  int64_t capacity;               // claims: the arrays' rows
-  int64_t* face_first;            // claims: (M,)
+  const int64_t* face_offsets;  // kFill: (M + 1,)
+  int64_t* face_target;         // kFill, kClaim: (F,)
+  io_t* face_area;              // kFill, kClaim: (F,)
+  io_t* face_centroid;          // kFill, kClaim: (F, 3)
+  io_t* face_inertia;           // kFill, kClaim: (F,)
+  unsigned long long* next_face;  // kClaim: the arrays' first free row
+  int64_t capacity;               // kClaim: the arrays' rows
+  int64_t* face_first;            // kClaim: (M,)
 
   using Cell = PowerCell<kPlanes, T>;
   static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
@@ -120,12 +124,13 @@ struct PowerCellFunctor {
         face_centroid[3 * f + 2] = io_t(at.z + double(face.centroid.z));
         face_inertia[f] = io_t(face.second[0] + face.second[1] + face.second[2]);
       };
-      core::for_each_face<kFaces>(cell, target_of, [&](int, int32_t target, const core::Face<T>& face) {
-        if constexpr (kFaces) store(face_offsets[m] + faces, target, face);
+      constexpr bool kFill = kMode == PowerFaceMode::kFill;
+      core::for_each_face<kFill>(cell, target_of, [&](int, int32_t target, const core::Face<T>& face) {
+        if constexpr (kFill) store(face_offsets[m] + faces, target, face);
         ++faces;
       });
-      if constexpr (!kFaces) {
-        if (next_face != nullptr && faces > 0) {  // counted: claim that many rows, then write them
+      if constexpr (kMode == PowerFaceMode::kClaim) {
+        if (faces > 0) {  // counted: claim that many rows, then write them
           const int64_t first = int64_t(core::fetch_add(next_face, static_cast<unsigned long long>(faces)));
           if (first + faces <= capacity) {
             int32_t slot = 0;
@@ -197,11 +202,11 @@ using PowerCellsAndFaces = std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Te
 
 // Runs the functor of the pass's tier over the rows (`Exec` the backend;
 // the host tiers run on Exec::HostExec, with the tensors on the host).
-template <typename Exec, typename io_t, bool kFaces>
-void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFunctor<io_t, 64, kFaces> base) {
+template <typename Exec, typename io_t, PowerFaceMode kMode>
+void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFunctor<io_t, 64, kMode> base) {
   const auto run = [&](auto planes, auto scalar) {
     constexpr int kPlanes = decltype(planes)::value;
-    PowerCellFunctor<io_t, kPlanes, kFaces, typename decltype(scalar)::type> functor;
+    PowerCellFunctor<io_t, kPlanes, kMode, typename decltype(scalar)::type> functor;
     functor.points = base.points;
     functor.weights = base.weights;
     functor.box = base.box;
@@ -310,33 +315,43 @@ std::tuple<PowerCellOutputs, at::Tensor, PowerFaceOutputs> power_forward(
         on_host ? power_grid<typename Exec::HostExec>(points, weights, batch, box.size(0), sorted_weights, cube_weight_max)
                 : power_grid<Exec>(points, weights, batch, box.size(0), sorted_weights, cube_weight_max);
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "power_cells", [&] {
-      PowerCellFunctor<scalar_t, 64, kFaces> functor;
-      functor.points = points.data_ptr<scalar_t>();
-      functor.weights = weights.data_ptr<scalar_t>();
-      functor.box = box.data_ptr<scalar_t>();
-      functor.batch = batch.has_value() ? batch->data_ptr<int64_t>() : nullptr;
-      functor.rows = rows.data_ptr<int64_t>();
-      functor.grid = grid.view<scalar_t>();
-      functor.sorted_weights = sorted_weights.data_ptr<scalar_t>();
-      functor.cube_weight_max = cube_weight_max.data_ptr<scalar_t>();
-      functor.weight_max = weight_max.data_ptr<double>();
-      functor.volume = volume.data_ptr<scalar_t>();
-      functor.centroid = centroid.data_ptr<scalar_t>();
-      functor.second_moment = second_moment.data_ptr<scalar_t>();
-      functor.status = status.data_ptr<int8_t>();
-      functor.needed = needed.data_ptr<int32_t>();
-      functor.radius = radius.data_ptr<float>();
-      functor.face_count = face_count.data_ptr<int32_t>();
-      functor.face_offsets = kFaces ? face_offsets.data_ptr<int64_t>() : nullptr;
-      functor.face_target = face_target.data_ptr<int64_t>();
-      functor.face_area = face_area.data_ptr<scalar_t>();
-      functor.face_centroid = face_centroid.data_ptr<scalar_t>();
-      functor.face_inertia = face_inertia.data_ptr<scalar_t>();
-      functor.next_face =
-          next_face.defined() ? reinterpret_cast<unsigned long long*>(next_face.data_ptr<int64_t>()) : nullptr;
-      functor.capacity = faces;
-      functor.face_first = face_first.data_ptr<int64_t>();
-      run_power_tier<Exec, scalar_t, kFaces>(tier, m, tuning, functor);
+      const auto launch = [&](auto mode) {
+        constexpr PowerFaceMode kMode = decltype(mode)::value;
+        PowerCellFunctor<scalar_t, 64, kMode> functor;
+        functor.points = points.data_ptr<scalar_t>();
+        functor.weights = weights.data_ptr<scalar_t>();
+        functor.box = box.data_ptr<scalar_t>();
+        functor.batch = batch.has_value() ? batch->data_ptr<int64_t>() : nullptr;
+        functor.rows = rows.data_ptr<int64_t>();
+        functor.grid = grid.view<scalar_t>();
+        functor.sorted_weights = sorted_weights.data_ptr<scalar_t>();
+        functor.cube_weight_max = cube_weight_max.data_ptr<scalar_t>();
+        functor.weight_max = weight_max.data_ptr<double>();
+        functor.volume = volume.data_ptr<scalar_t>();
+        functor.centroid = centroid.data_ptr<scalar_t>();
+        functor.second_moment = second_moment.data_ptr<scalar_t>();
+        functor.status = status.data_ptr<int8_t>();
+        functor.needed = needed.data_ptr<int32_t>();
+        functor.radius = radius.data_ptr<float>();
+        functor.face_count = face_count.data_ptr<int32_t>();
+        functor.face_offsets = kFaces ? face_offsets.data_ptr<int64_t>() : nullptr;
+        functor.face_target = face_target.data_ptr<int64_t>();
+        functor.face_area = face_area.data_ptr<scalar_t>();
+        functor.face_centroid = face_centroid.data_ptr<scalar_t>();
+        functor.face_inertia = face_inertia.data_ptr<scalar_t>();
+        functor.next_face =
+            next_face.defined() ? reinterpret_cast<unsigned long long*>(next_face.data_ptr<int64_t>()) : nullptr;
+        functor.capacity = faces;
+        functor.face_first = face_first.data_ptr<int64_t>();
+        run_power_tier<Exec, scalar_t, kMode>(tier, m, tuning, functor);
+      };
+      if constexpr (kFaces) {
+        launch(std::integral_constant<PowerFaceMode, PowerFaceMode::kFill>());
+      } else if (next_face.defined()) {
+        launch(std::integral_constant<PowerFaceMode, PowerFaceMode::kClaim>());
+      } else {
+        launch(std::integral_constant<PowerFaceMode, PowerFaceMode::kCount>());
+      }
     });
   }
   const auto back = [&](const at::Tensor& t) { return on_host ? t.to(points_in.device()) : t; };
