@@ -2,9 +2,9 @@
 // CUDA backends: the cells of a power diagram (core/power_cell.h) for given
 // rows, each walking a grid of the points (built here, with the largest
 // weight of each cube), one thread a cell, in float64 whatever the points'
-// dtype. torchvor/power.py bounds the weights that can reach each cell,
-// retries the cells whose arrays overflowed (the next tier), and counts,
-// then fills, the faces.
+// dtype, writing their faces where asked (each cell claiming its rows).
+// torchvor/power.py bounds the weights that can reach each cell, retries the
+// cells whose arrays overflowed (the next tier), and gathers the faces.
 #pragma once
 
 #include <ATen/ATen.h>
