@@ -317,27 +317,25 @@ FACE_ROOM = 20
 
 def _claimed_faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget, claims, row_call,
                    row_first) -> PowerFaces:
-    """The faces the cells claimed in their last power_cells call, in row order,
-    and those of the cells whose call ran out of room (_faces, a second pass)."""
+    """The faces the cells claimed in their last power_cells call (call by call,
+    rows in order), and those of the cells whose call ran out of room (_faces, a
+    second pass)."""
     with_faces = face_count > 0
     claimed = with_faces & (row_first >= 0)
-    rows = torch.nonzero(claimed).flatten()
-    counts = face_count[rows].long()
-    call_start = torch.tensor([0] + [c[0].shape[0] for c in claims], dtype=torch.int64,
-                              device=points.device).cumsum(0)
-    first = call_start[row_call[rows]] + row_first[rows]
-    starts = counts.cumsum(0) - counts
-    index = (first - starts).repeat_interleave(counts) + torch.arange(int(counts.sum()), device=points.device)
-    columns = [torch.cat(column) if len(claims) > 1 else column[0] for column in zip(*claims)] if claims else None
     parts = []
-    if rows.numel():
-        parts.append(PowerFaces(rows.repeat_interleave(counts), *(column.index_select(0, index) for column in columns)))
+    for call, arrays in enumerate(claims):
+        rows = torch.nonzero(claimed & (row_call == call)).flatten()
+        if rows.numel() == 0:
+            continue
+        counts = face_count[rows].long()
+        starts = counts.cumsum(0) - counts
+        index = (row_first[rows] - starts).repeat_interleave(counts) + torch.arange(int(counts.sum()),
+                                                                                   device=points.device)
+        parts.append(PowerFaces(rows.repeat_interleave(counts), *(column.index_select(0, index) for column in arrays)))
     rest = with_faces & ~claimed
-    if bool(rest.any()):
+    if bool(rest.any()) or not parts:
         parts.append(_faces(points, weights, box, batch, row_bound, row_tier, torch.where(rest, face_count, 0),
                             memory_budget))
-    if not parts:
-        return _faces(points, weights, box, batch, row_bound, row_tier, face_count, memory_budget)
     return parts[0] if len(parts) == 1 else PowerFaces(*(torch.cat(column) for column in zip(*parts)))
 
 
