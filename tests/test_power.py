@@ -273,12 +273,20 @@ def test_opcheck_power_ops(device, dtype, gen):
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=dtype, device=device)
     rows = torch.arange(30, device=device)
     weight_max = weights.double().max().expand(30).contiguous()  # per row: no point weighs more
-    torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 0))
+    torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 1))
+    if dtype == torch.float32:  # tier 0, float32 cells, on a jittered lattice: none sent on with NaN outputs
+        lattice = torch.stack(torch.meshgrid(*[torch.arange(3.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        jittered = ((lattice + 0.5 + 0.3 * (torch.rand(27, 3, generator=gen) - 0.5)) / 3).to(device)
+        small = weights[:27] * 0.1
+        bound = small.double().max().expand(27).contiguous()
+        out = torch.ops.torchvor.power_cells.default(jittered, small, box, None, rows[:27], bound, 0)
+        assert bool((out[3] == CellStatus.SUCCESS).all())
+        torch.library.opcheck(torch.ops.torchvor.power_cells.default, (jittered, small, box, None, rows[:27], bound, 0))
     # the cells claiming their faces' rows, in an order the threads decide: the
     # checks that compare two runs' outputs do not apply
-    torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 0, 20),
+    torch.library.opcheck(torch.ops.torchvor.power_cells.default, (points, weights, box, None, rows, weight_max, 1, 20),
                           test_utils=("test_autograd_registration", "test_faketensor"))
-    counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 0)[6]
+    counts = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 1)[6]
     offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)]).long()
     torch.library.opcheck(torch.ops.torchvor.power_faces.default,
                           (points, weights, box, None, rows, weight_max, 1, offsets))
@@ -302,7 +310,7 @@ def test_claimed_faces_are_the_face_pass_faces(device, gen, monkeypatch):
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
     _cells, claimed = power.power_cells(points, weights, box, faces=True)
     count = torch.ops.torchvor.power_cells.default(points, weights, box, None, torch.arange(400, device=device),
-                                                   weights.max().expand(400).contiguous(), 0, 20)
+                                                   weights.max().expand(400).contiguous(), 1, 20)
     assert bool(((count[7] >= 0) == (count[6] > 0)).all()), "room for 20 faces a cell: every cell with faces claims"
     assert bool((count[3] == CellStatus.EMPTY).any())
     seen = []
@@ -320,27 +328,57 @@ def test_claimed_faces_are_the_face_pass_faces(device, gen, monkeypatch):
 
 
 def test_larger_tiers_give_the_same_cells(device, gen):
-    """Tiers 0-4 (tiers 2-4 on the CPU, whatever the device) agree bit for bit;
-    tiers 5-6 (double-double) to float64's rounding."""
+    """Float64 tiers 1-5 (tiers 3-5 on the CPU, whatever the device) agree bit for
+    bit; tiers 6-7 (double-double) to float64's rounding."""
     points = _cloud(60, gen, torch.float64, device)
     weights = _weights(60, 1.0, gen, torch.float64, device)
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
     rows = torch.arange(60, device=device)
     weight_max = weights.max().expand(60).contiguous()
-    results = [torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, tier)
-               for tier in range(7)]
-    # bit for bit within a processor (tiers 0-1 on the device, 2-3 on the CPU: on CUDA
+    results = {tier: torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, tier)
+               for tier in range(1, 8)}
+    # bit for bit within a processor (tiers 1-2 on the device, 3-5 on the CPU: on CUDA
     # the two compile a * b + c apart), to rounding across them
-    for first, second in ((0, 1), (2, 3), (3, 4), (0, 2)):
-        exact = first != 0 or second != 2 or device.type == "cpu"
+    for first, second in ((1, 2), (3, 4), (4, 5), (1, 3)):
+        exact = first != 1 or second != 3 or device.type == "cpu"
         assert results[second][0].device == points.device
         torch.testing.assert_close(results[second][0], results[first][0], rtol=0 if exact else 1e-13, atol=0)
         torch.testing.assert_close(results[second][3], results[first][3], rtol=0, atol=0)
-    torch.testing.assert_close(results[5][0], results[0][0], rtol=1e-12, atol=1e-16)
-    torch.testing.assert_close(results[5][1], results[0][1], rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(results[5][3], results[0][3], rtol=0, atol=0)
-    torch.testing.assert_close(results[5][6], results[0][6], rtol=0, atol=0)
-    torch.testing.assert_close(results[6][0], results[5][0], rtol=0, atol=0)
+    torch.testing.assert_close(results[6][0], results[1][0], rtol=1e-12, atol=1e-16)
+    torch.testing.assert_close(results[6][1], results[1][1], rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(results[6][3], results[1][3], rtol=0, atol=0)
+    torch.testing.assert_close(results[6][6], results[1][6], rtol=0, atol=0)
+    torch.testing.assert_close(results[7][0], results[6][0], rtol=0, atol=0)
+
+
+def test_float32_tier(device, gen):
+    """Tier 0 computes float32 points' cells in float32: within float32's guarantee
+    (1e-4 relative volume) of the float64 tier's on the same points, EMPTY only
+    where float64 finds them empty, or sent on (ILL_CONDITIONED: a cell rounding
+    could have emptied, TOO_MANY_PLANES, TOO_MANY_VERTICES); it takes no float64
+    points and computes no faces."""
+    points = _cloud(2000, gen, torch.float32, device)
+    weights = _weights(2000, 3.0, gen, torch.float32, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float32, device=device)
+    rows = torch.arange(2000, device=device)
+    weight_max = weights.double().max().expand(2000).contiguous()
+    single = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 0)
+    double = torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 1)
+    assert single[0].dtype == torch.float32
+    done = single[3] == CellStatus.SUCCESS
+    empty = single[3] == CellStatus.EMPTY
+    assert float((done | empty).float().mean()) > 0.9 and bool(empty.any())
+    sent_on = (CellStatus.ILL_CONDITIONED, CellStatus.TOO_MANY_PLANES, CellStatus.TOO_MANY_VERTICES)
+    assert bool(sum(single[3] == code for code in sent_on)[~(done | empty)].all()), single[3].unique()
+    assert bool((double[3][done] == CellStatus.SUCCESS).all()) and bool((double[3][empty] == CellStatus.EMPTY).all())
+    torch.testing.assert_close(single[0][done], double[0][done], rtol=1e-4, atol=0)
+    scale = float(double[0][done].max()) ** (1 / 3)
+    torch.testing.assert_close(single[1][done], double[1][done], rtol=0, atol=1e-4 * scale)
+    with pytest.raises(ValueError, match="tier 0"):
+        torch.ops.torchvor.power_cells.default(points.double(), weights.double(), box.double(), None, rows,
+                                               weight_max, 0)
+    with pytest.raises(ValueError, match="tier 0"):
+        torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 0, 20)
 
 
 def test_power_lloyd_keeps_the_volumes_and_relaxes(device):

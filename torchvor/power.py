@@ -24,12 +24,14 @@ import torch
 
 from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells
 
-# The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float64 cells of up
-# to 64, 160, 1024, 4096 and 16384 planes, then double-double ones of 4096 and
-# 16384 (for cells from tier 4).
-LAST_FLOAT64_TIER = 4
-DOUBLE_DOUBLE_TIER = 5
-LAST_TIER = 6
+# The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float32 cells of up
+# to 32 planes (float32 points, no faces), float64 cells of up to 64, 160, 1024,
+# 4096 and 16384 planes, then double-double ones of 4096 and 16384 (for cells
+# from tier 5).
+FLOAT32_TIER = 0
+LAST_FLOAT64_TIER = 5
+DOUBLE_DOUBLE_TIER = 6
+LAST_TIER = 7
 _RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
 _RETRY_WIDER = (int(CellStatus.ILL_CONDITIONED), int(CellStatus.BOUNDARY_ERROR))
 _EMPTY = int(CellStatus.EMPTY)
@@ -233,7 +235,9 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
     needed = torch.zeros(n, dtype=torch.int32, device=device)
     radius = torch.full((n,), math.nan, dtype=torch.float32, device=device)
     face_count = torch.zeros(n, dtype=torch.int32, device=device)
-    row_tier = torch.zeros(n, dtype=torch.int64, device=device)
+    # float32 points' cells without faces start in float32 (tier 0), the others in float64
+    first_tier = FLOAT32_TIER if points.dtype == torch.float32 and not faces else FLOAT32_TIER + 1
+    row_tier = torch.full((n,), first_tier, dtype=torch.int64, device=device)
     row_reach = torch.zeros(n, dtype=torch.float64, device=device)  # the reach each row's bound holds for
     row_bound = torch.zeros(n, dtype=torch.float64, device=device)  # weight_max: the bound within it
     # With faces, each op call's cells claim their faces' rows (face_room a cell): the
@@ -271,7 +275,9 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
                 larger = overflow & ((tier < LAST_FLOAT64_TIER) | (tier == DOUBLE_DOUBLE_TIER))
                 wider = ((code == _RETRY_WIDER[0]) | (code == _RETRY_WIDER[1])) & (tier < DOUBLE_DOUBLE_TIER)
                 row_tier[group[larger]] = tier + 1
-                row_tier[group[wider]] = DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER)
+                # float32 cells go to float64, float64 ones to double-double
+                row_tier[group[wider]] = (FLOAT32_TIER + 1 if tier == FLOAT32_TIER else
+                                          DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER))
                 # the bound held where nothing past its reach could cut: the cell's own reach within it
                 # (an empty cell stays empty)
                 stopped = code == int(CellStatus.SUCCESS)

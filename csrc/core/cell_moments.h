@@ -68,6 +68,12 @@ struct CellMoments {
   // volume by the face's share, the tetrahedron's volume over h. It is what
   // makes a needle cell, hundreds of times longer than wide, ill-conditioned.
   TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex) {
+    add_vertex(planes, vertex, vertex.radius2);
+  }
+  // The same where rounding moves the vertex by eps times sqrt(rounding2)
+  // rather than |v| (a power cell: its vertices are computed about the seed,
+  // not about the origin of these integrals).
+  TV_HD void add_vertex(const Plane<T> (&planes)[3], const CachedVertex<T>& vertex, T rounding2) {
     const Vec3<T> v = vertex.position;
     Vec3<T> feet[3];
     T feet2[3];
@@ -98,8 +104,7 @@ struct CellMoments {
       const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
       const T sine = select(det < T(0), -det, det) * inverse_norms;
       // |v| / sine; Inf or NaN where the planes are degenerate
-      const T length =
-          select(vertex.radius2 > T(0), vertex.radius2 * rsqrt_of(vertex.radius2 * sine * sine), T(0));
+      const T length = select(rounding2 > T(0), rounding2 * rsqrt_of(rounding2 * sine * sine), T(0));
       TV_UNROLL
       for (int e = 0; e < 3; ++e) weight[e] = static_cast<Weight>(length * inverse_h[e]);
     }

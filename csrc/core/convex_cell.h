@@ -251,8 +251,7 @@ struct HomogeneousSlots<false, N> {};
 
 // What a power cell (kWeighted) keeps beside each bisector's neighbour: the
 // weight difference that moves its plane (power_plane) and the neighbour's
-// index (its face's target), and how far the largest weight exceeds the
-// seed's (its radius of security). Nothing for a Voronoi cell: an empty base.
+// index (its face's target). Nothing for a Voronoi cell: an empty base.
 template <typename T, int N, bool kWeighted>
 struct PowerTerms {
   TV_HD void move_terms(int /*to*/, int /*from*/) {}
@@ -261,7 +260,6 @@ template <typename T, int N>
 struct PowerTerms<T, N, true> {
   T shift[N];        // w_seed - w_j of bisector q - kBoxPlanes
   int32_t owner[N];  // j
-  T spread;          // (the largest weight) - w_seed, >= 0
   TV_HD void move_terms(int to, int from) {
     shift[to] = shift[from];
     owner[to] = owner[from];
@@ -270,7 +268,8 @@ struct PowerTerms<T, N, true> {
 
 // kCompact: the triangles in CompactTriangles (float32, at most 32 planes).
 // kWeighted: a power cell (clip_by_power_plane), whose planes are power
-// bisectors; it may be empty (kEmpty).
+// bisectors; it may be empty (kEmpty; a float cell leaves that verdict to
+// float64: kIllConditioned).
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES, bool kCompact = false, bool kWeighted = false>
 struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   using Scalar = T;
@@ -456,6 +455,42 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
     }
     return T(0);
   }
+  // The squared length on whose scale rounding moves power cell vertex t
+  // (CellMoments::add_vertex): its distance from the seed (the clip's
+  // coordinates), or a power plane's (|r|^2 + |shift|) / (2 |r|), the scale
+  // its offset is rounded on, where that is larger (a large shift).
+  TV_HD T rounding_radius2(int t) const {
+    const Corners corners = triangle.corners(t);
+    T largest = squared_norm(triangle.position(t));
+    for (int e = 0; e < 3; ++e) {
+      const int q = corner(corners, e);
+      if (q < kBoxPlanes) continue;
+      const T r2 = squared_norm(neighbor[q - kBoxPlanes]);
+      const T shift = shift_of(q);
+      const T span = r2 + (shift < T(0) ? -shift : shift);
+      largest = max_of(largest, span * span / (T(4) * r2));
+    }
+    return largest;
+  }
+  // Whether every vertex lies outside plane p by more than `band` and more
+  // than rounding can have moved it (2^-14 rounding_radius2's length over
+  // the sine of its planes, well above a float vertex's error), so that the
+  // exact cell lies outside it too: a float cell's EMPTY verdict.
+  TV_HD bool outside_beyond_rounding(const Plane<T>& p, T band) const {
+    const T norm = sqrt_of(dot(p.normal, p.normal));
+    for (int t = 0; t < num_triangles; ++t) {
+      const Corners corners = triangle.corners(t);
+      const Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
+      const T det = dot(cross(planes[0].normal, planes[1].normal), planes[2].normal);
+      const T norms = sqrt_of(dot(planes[0].normal, planes[0].normal) * dot(planes[1].normal, planes[1].normal) *
+                              dot(planes[2].normal, planes[2].normal));
+      const T moved = T(1.0 / 16384.0) * sqrt_of(rounding_radius2(t)) * norms;  // times sine: the vertex's reach
+      const T value = dot(p.normal, triangle.position(t)) + p.offset;
+      const T det_abs = det < T(0) ? -det : det;
+      if (!(value < -band) || !(-value * det_abs > norm * moved)) return false;
+    }
+    return true;
+  }
   // A power cell's neighbour across plane q >= kBoxPlanes.
   TV_HD int32_t owner_of(int q) const {
     if constexpr (kWeighted) return this->owner[q - kBoxPlanes];
@@ -485,11 +520,14 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
         const Corners corners = triangle.corners(t);
         Vec3<T> position = triangle.position(t);
         Plane<T> planes[3] = {plane(corner(corners, 0)), plane(corner(corners, 1)), plane(corner(corners, 2))};
+        T rounding2 = T(0);  // the rounding weights' scale (rounding_radius2), where they are kept
         if constexpr (kWeighted) {
+          if constexpr (CellMoments<T, kWeighted>::kConditioned) rounding2 = rounding_radius2(t);
           position = position - origin;
           for (int e = 0; e < 3; ++e) planes[e].offset += dot(planes[e].normal, origin);
         }
-        moments.add_vertex(planes, {position, squared_norm(position)});
+        const T radius2_here = squared_norm(position);
+        moments.add_vertex(planes, {position, radius2_here}, kWeighted ? rounding2 : radius2_here);
       }
     }
     moments.finish(volume, first_moment, second_moment, rounding);
@@ -528,9 +566,11 @@ struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
     if (!classify(p, shift, -tolerance * r2, clipped, kept_radius2)) return true;  // the plane misses the cell
     if constexpr (kWeighted) {
       if (clipped.count() == num_triangles) {
+        bool empty = true;
+        if constexpr (std::is_same<T, float>::value) empty = outside_beyond_rounding(p, tolerance * r2);
         num_triangles = 0;
         radius2 = T(0);
-        return fail(kEmpty);
+        return fail(empty ? kEmpty : kIllConditioned);  // a float sliver that rounding removed whole: to float64
       }
     }
     if (num_planes == MAX_PLANES) compact_planes();

@@ -97,8 +97,10 @@ TV_HD CellMoments<T, kGeneralPlanes> add_vertices_packed(const Cell& cell, Vec3<
     vertex.position = vertex_pack<T>(cell, base, count);
     if constexpr (kGeneralPlanes) vertex.position = vertex.position - Vec3<P>{P(origin.x), P(origin.y), P(origin.z)};
     vertex.radius2 = squared_norm(vertex.position);
+    P rounding2 = vertex.radius2;
     for (int i = 0; i < W; ++i) {
       const int t = lane_vertex(base + i, count);
+      if constexpr (kGeneralPlanes) rounding2.lanes[i] = cell.rounding_radius2(t);
       int ids[3];
       cell.vertex_planes(t, ids);
       for (int e = 0; e < 3; ++e) {
@@ -110,7 +112,7 @@ TV_HD CellMoments<T, kGeneralPlanes> add_vertices_packed(const Cell& cell, Vec3<
       }
     }
     CellMoments<P, kGeneralPlanes> part = CellMoments<P, kGeneralPlanes>::zero();
-    part.add_vertex(planes, vertex);
+    part.add_vertex(planes, vertex, rounding2);
     const PackMask<T> valid = {lanes < count - base};
     const P zero(T(0));
     total.six_volume += select(valid, part.six_volume, zero);

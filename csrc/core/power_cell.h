@@ -171,14 +171,17 @@ template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
                                           const GridView<io_t>& grid, const io_t* sorted_weights,
                                           const io_t* cube_weight_max, int64_t batch,
-                                          const io_t* box, T weight_max, T relative_tolerance) {
+                                          const io_t* box, double weight_max, T relative_tolerance) {
   const Vec3<io_t> seed_io = load_vec3(points + 3 * seed_index);
   const Vec3<T> seed = {T(seed_io.x), T(seed_io.y), T(seed_io.z)};
   const T seed_weight = T(weights[seed_index]);
   const Vec3<T> lo = {T(box[0]), T(box[1]), T(box[2])};
   const Vec3<T> hi = {T(box[3]), T(box[4]), T(box[5])};
   cell.init_box(lo - seed, hi - seed, relative_tolerance);
-  cell.spread = max_of(weight_max - seed_weight, T(0));
+  // The reach and the planes' misses take the cell's radius as wide as the
+  // security radius does (beyond_security_radius): its vertices are rounded.
+  const T slack = T(1) + T(64) * relative_tolerance;
+  const auto reach_radius2 = [&]() { return static_cast<double>(slack * cell.largest_radius2()); };
   CellIntegrals<T> out;
   out.status = kSuccess;
   int32_t examined = 0;
@@ -203,17 +206,17 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
     }
     // A copy of a point already clipped gives the same plane again, which
     // then misses the cell (its vertices lie within the clip's tolerance).
-    if (power_plane_misses(r2, shift, cell.largest_radius2())) return true;
+    if (power_plane_misses(r2, shift, T(reach_radius2()))) return true;
     if (!cell.clip_by_power_plane(r, shift, grid.original_index(s))) {
       out.status = cell.status;
       return false;
     }
     return true;
   };
-  PowerWalk<io_t> walk(grid, cube_weight_max, batch, seed_io, static_cast<double>(seed_weight),
-                       static_cast<double>(cell.spread));
-  for (int32_t s = walk.next(static_cast<double>(cell.largest_radius2())); s >= 0 && offer(s);
-       s = walk.next(static_cast<double>(cell.largest_radius2()))) {
+  const double seed_weight_exact = static_cast<double>(weights[seed_index]);
+  PowerWalk<io_t> walk(grid, cube_weight_max, batch, seed_io, seed_weight_exact,
+                       max_of(weight_max - seed_weight_exact, 0.0));
+  for (int32_t s = walk.next(reach_radius2()); s >= 0 && offer(s); s = walk.next(reach_radius2())) {
   }
   out.neighbors = examined;
   if (out.status == kDuplicate || out.status == kEmpty) {

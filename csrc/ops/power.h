@@ -1,8 +1,9 @@
 // torchvor::power_cells and torchvor::power_faces, shared by the CPU and
 // CUDA backends: the cells of a power diagram (core/power_cell.h) for given
 // rows, each walking a grid of the points (built here, with the largest
-// weight of each cube), one thread a cell, in float64 whatever the points'
-// dtype, writing their faces where asked (each cell claiming its rows).
+// weight of each cube), one thread a cell, in float64 (float32 points'
+// cells without faces first in float32), writing their faces where asked
+// (each cell claiming its rows).
 // torchvor/power.py bounds the weights that can reach each cell, retries the
 // cells whose arrays overflowed (the next tier), and gathers the faces.
 #pragma once
@@ -25,21 +26,26 @@ namespace ops {
 
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
-// cells on the heap. Tiers 0-4 compute in float64 (the largest for the
+// cells on the heap. Tier 0 computes float32 points' cells in float32 (the
+// compact thread cell, behind the float checks; no faces), for cells of
+// other points, or with faces, are refused); tiers 1-5 in float64 (the largest for the
 // cells above a dense layer of points, with thousands of faces); the last
 // two, for the cells whose float64 integrals or clips the arithmetic does not
 // resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
-constexpr int kPowerTierPlanes[] = {64, 160, 1024, 4096, 16384, 4096, 16384};
-constexpr int kLastDevicePowerTier = 1;
-constexpr int kDoubleDoublePowerTier = 5;
-constexpr int kLastPowerTier = 6;
+constexpr int kPowerTierPlanes[] = {32, 64, 160, 1024, 4096, 16384, 4096, 16384};
+constexpr int kFloatPowerTier = 0;
+constexpr int kLastDevicePowerTier = 2;
+constexpr int kDoubleDoublePowerTier = 6;
+constexpr int kLastPowerTier = 7;
 
 // Points a cube of the walk's grid: few, so that a cube's largest weight
 // bounds few points (a cube that cannot reach the cell is skipped whole).
 constexpr double kPowerPointsPerCube = 2.0;
 
-template <int kPlanes, typename T>
-using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, false, true>;
+// kCompact: float32 triangles in 12 bytes (core::CompactTriangles), where
+// the backend keeps them so (Exec::kCompactTriangles: the GPU's L1 cache).
+template <int kPlanes, typename T, bool kCompact = false>
+using PowerCell = core::ConvexCell<T, kPlanes, 2 * kPlanes, kCompact, true>;
 
 // What a power cell does with its faces: counts them; counts them, claims a
 // range of the faces' arrays that long and writes them there; or writes them
@@ -53,7 +59,7 @@ enum class PowerFaceMode { kCount, kClaim, kFill };
 // over the face of |y - centroid|^2: the weights' gradients' term); with
 // kClaim, the same in a range it claims from `next_face` (face_first[m]:
 // the range's start; -1: no faces, or past `capacity`, none written).
-template <typename io_t, int kPlanes, PowerFaceMode kMode, typename T = double>
+template <typename io_t, int kPlanes, PowerFaceMode kMode, typename T = double, bool kCompact = false>
 struct PowerCellFunctor {
   const io_t* points;         // (N, 3)
   const io_t* weights;        // (N,)
@@ -80,7 +86,7 @@ struct PowerCellFunctor {
   int64_t capacity;               // kClaim: the arrays' rows
   int64_t* face_first;            // kClaim: (M,)
 
-  using Cell = PowerCell<kPlanes, T>;
+  using Cell = PowerCell<kPlanes, T, kCompact>;
   static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
 
   TV_HD void operator()(int64_t m) const {
@@ -99,7 +105,7 @@ struct PowerCellFunctor {
     const int64_t seed = rows[m];
     const int64_t b = batch != nullptr ? batch[seed] : 0;
     const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
-        cell, points, weights, seed, grid, sorted_weights, cube_weight_max, b, box + 6 * b, T(weight_max[m]),
+        cell, points, weights, seed, grid, sorted_weights, cube_weight_max, b, box + 6 * b, weight_max[m],
         T(core::ClipTolerance<T>::value));
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
@@ -206,7 +212,9 @@ template <typename Exec, typename io_t, PowerFaceMode kMode>
 void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFunctor<io_t, 64, kMode> base) {
   const auto run = [&](auto planes, auto scalar) {
     constexpr int kPlanes = decltype(planes)::value;
-    PowerCellFunctor<io_t, kPlanes, kMode, typename decltype(scalar)::type> functor;
+    using Scalar = typename decltype(scalar)::type;
+    constexpr bool kCompact = std::is_same<Scalar, float>::value && Exec::kCompactTriangles;
+    PowerCellFunctor<io_t, kPlanes, kMode, Scalar, kCompact> functor;
     functor.points = base.points;
     functor.weights = base.weights;
     functor.box = base.box;
@@ -242,13 +250,20 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
   };
   using Double = PowerScalar<double>;
   switch (tier) {
-    case 0: run(std::integral_constant<int, kPowerTierPlanes[0]>(), Double()); break;
+    case 0:  // float32 points' cells without faces only (power_forward checks)
+      if constexpr (std::is_same<io_t, float>::value && kMode == PowerFaceMode::kCount) {
+        run(std::integral_constant<int, kPowerTierPlanes[0]>(), PowerScalar<float>());
+      } else {
+        TORCH_INTERNAL_ASSERT(false, "torchvor.power_cells: tier 0 is float32 points' cells without faces");
+      }
+      break;
     case 1: run(std::integral_constant<int, kPowerTierPlanes[1]>(), Double()); break;
     case 2: run(std::integral_constant<int, kPowerTierPlanes[2]>(), Double()); break;
     case 3: run(std::integral_constant<int, kPowerTierPlanes[3]>(), Double()); break;
     case 4: run(std::integral_constant<int, kPowerTierPlanes[4]>(), Double()); break;
-    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), PowerScalar<core::DoubleDouble>()); break;
-    default: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
+    case 5: run(std::integral_constant<int, kPowerTierPlanes[5]>(), Double()); break;
+    case 6: run(std::integral_constant<int, kPowerTierPlanes[6]>(), PowerScalar<core::DoubleDouble>()); break;
+    default: run(std::integral_constant<int, kPowerTierPlanes[7]>(), PowerScalar<core::DoubleDouble>()); break;
   }
 }
 
@@ -275,6 +290,8 @@ std::tuple<PowerCellOutputs, at::Tensor, PowerFaceOutputs> power_forward(
     int64_t tier, const at::Tensor& face_offsets_in, int64_t face_room) {
   check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, weight_max_in, tier);
   TORCH_CHECK_VALUE(face_room >= 0, "torchvor.power_cells: face_room must be >= 0, got ", face_room);
+  TORCH_CHECK_VALUE(tier != kFloatPowerTier || (points_in.scalar_type() == at::kFloat && !kFaces && face_room == 0),
+                    "torchvor.power_cells: tier 0 (float32 cells) takes float32 points and computes no faces");
   const Options tuning = Options::from_environment();
   // The host tiers run on the host: their tensors go there (and back).
   const bool on_host = tier > kLastDevicePowerTier && !points_in.device().is_cpu();
