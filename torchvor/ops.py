@@ -322,9 +322,10 @@ def voronoi(
             diagram, cell i = {y : |y - x_i|^2 - w_i <= |y - x_j|^2 - w_j for
             all j} (:mod:`torchvor.power`). A cell may lie away from its point
             or be empty (status EMPTY, volume 0, centroid the point); a copy
-            of a point with a larger weight empties its cell. Computed in
-            float64 (outputs in the points' dtype), each cell walking a grid
-            of the points (``k`` unused). Volume, centroid and second moment
+            of a point with a larger weight empties its cell. Float32 cells
+            are held to float32's guarantee (recomputed in float64 where the
+            float32 checks ask), float64 ones computed in float64, each cell
+            walking a grid of the points (``k`` unused). Volume, centroid and second moment
             are differentiable in the weights (not in the points: that
             backward raises). With ``periodic``, images carry their point's
             weight.

@@ -7,10 +7,11 @@ give the Voronoi diagram. A cell may lie away from its point, or be empty.
 The cells come from ``torch.ops.torchvor.power_cells`` (csrc/ops/power.h):
 each cell walks a grid of the points outwards from its own, clipped by the
 points that can reach it until the power radius of security proves it exact,
-in float64. This module bounds the weights that can reach each cell
-(_WeightBounds), retries the cells whose arrays overflowed (the next tier;
-the largest run on the CPU) or whose float64 arithmetic did not resolve them
-(double-double, on the CPU), and gathers the faces. :func:`power_weights` solves for the weights by damped Newton
+in float64 (float32 points' cells without faces first in float32). This
+module bounds the weights that can reach each cell (_WeightBounds), retries
+the cells whose arrays overflowed (the next tier; the largest run on the CPU)
+or whose arithmetic did not resolve them (float32 to float64, float64 to
+double-double on the CPU), and gathers the faces. :func:`power_weights` solves for the weights by damped Newton
 (Kitagawa, Merigot and Thibert 2019), with the power diagram's Laplacian
 as the Jacobian and conjugate gradients in torch.
 """
