@@ -30,9 +30,9 @@ from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells
 # 4096 and 16384 planes, then double-double ones of 4096 and 16384 (for cells
 # from tier 5).
 FLOAT32_TIER = 0
+FIRST_FLOAT64_TIER = 1
 LAST_FLOAT64_TIER = 5
 DOUBLE_DOUBLE_TIER = 6
-LAST_TIER = 7
 _RETRY_TIER = (int(CellStatus.TOO_MANY_PLANES), int(CellStatus.TOO_MANY_VERTICES))
 _RETRY_WIDER = (int(CellStatus.ILL_CONDITIONED), int(CellStatus.BOUNDARY_ERROR))
 _EMPTY = int(CellStatus.EMPTY)
@@ -237,7 +237,7 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
     radius = torch.full((n,), math.nan, dtype=torch.float32, device=device)
     face_count = torch.zeros(n, dtype=torch.int32, device=device)
     # float32 points' cells without faces start in float32 (tier 0), the others in float64
-    first_tier = FLOAT32_TIER if points.dtype == torch.float32 and not faces else FLOAT32_TIER + 1
+    first_tier = FLOAT32_TIER if points.dtype == torch.float32 and not faces else FIRST_FLOAT64_TIER
     row_tier = torch.full((n,), first_tier, dtype=torch.int64, device=device)
     row_reach = torch.zeros(n, dtype=torch.float64, device=device)  # the reach each row's bound holds for
     row_bound = torch.zeros(n, dtype=torch.float64, device=device)  # weight_max: the bound within it
@@ -277,7 +277,7 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
                 wider = ((code == _RETRY_WIDER[0]) | (code == _RETRY_WIDER[1])) & (tier < DOUBLE_DOUBLE_TIER)
                 row_tier[group[larger]] = tier + 1
                 # float32 cells go to float64, float64 ones to double-double
-                row_tier[group[wider]] = (FLOAT32_TIER + 1 if tier == FLOAT32_TIER else
+                row_tier[group[wider]] = (FIRST_FLOAT64_TIER if tier == FLOAT32_TIER else
                                           DOUBLE_DOUBLE_TIER + (tier == LAST_FLOAT64_TIER))
                 # the bound held where nothing past its reach could cut: the cell's own reach within it
                 # (an empty cell stays empty)

@@ -268,8 +268,8 @@ struct PowerTerms<T, N, true> {
 
 // kCompact: the triangles in CompactTriangles (float32, at most 32 planes).
 // kWeighted: a power cell (clip_by_power_plane), whose planes are power
-// bisectors; it may be empty (kEmpty; a float cell leaves that verdict to
-// float64: kIllConditioned).
+// bisectors; it may be empty (kEmpty; a float cell only where rounding
+// cannot explain it, outside_beyond_rounding, else kIllConditioned).
 template <typename T, int MAX_PLANES, int MAX_TRIANGLES, bool kCompact = false, bool kWeighted = false>
 struct ConvexCell : PowerTerms<T, MAX_PLANES - kBoxPlanes, kWeighted> {
   using Scalar = T;

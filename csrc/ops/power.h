@@ -27,11 +27,12 @@ namespace ops {
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
 // cells on the heap. Tier 0 computes float32 points' cells in float32 (the
-// compact thread cell, behind the float checks; no faces), for cells of
-// other points, or with faces, are refused); tiers 1-5 in float64 (the largest for the
-// cells above a dense layer of points, with thousands of faces); the last
-// two, for the cells whose float64 integrals or clips the arithmetic does not
-// resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in double-double.
+// compact thread cell, behind the float checks), without faces: calls with
+// float64 points or faces are refused there. Tiers 1-5 compute in float64
+// (the largest for the cells above a dense layer of points, with thousands
+// of faces); the last two, for the cells whose float64 integrals or clips
+// the arithmetic does not resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in
+// double-double.
 constexpr int kPowerTierPlanes[] = {32, 64, 160, 1024, 4096, 16384, 4096, 16384};
 constexpr int kFloatPowerTier = 0;
 constexpr int kLastDevicePowerTier = 2;
