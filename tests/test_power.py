@@ -86,6 +86,11 @@ def _walk_case(kind, gen):
         weights = torch.zeros(200, dtype=torch.float64)
         weights[0] = 0.12
         return points, weights, (np.zeros(3), np.ones(3))
+    if kind == "crowded_cubes":  # a cluster: the 27 cubes around a point hold more than the nearest-first 64
+        points = torch.rand(300, 3, generator=gen, dtype=torch.float64)
+        points[100:] = 0.3 + 0.02 * points[100:]
+        weights = torch.rand(300, generator=gen, dtype=torch.float64) * 1e-4
+        return points, weights, (np.zeros(3), np.ones(3))
     if kind == "flat_cloud":  # one cube thick: every shell past the first is clamped along z
         points = torch.rand(160, 3, generator=gen, dtype=torch.float64)
         points[:, 2] = 0.5
@@ -98,7 +103,8 @@ def _walk_case(kind, gen):
     return points, weights, (np.zeros(3), np.ones(3))
 
 
-@pytest.mark.parametrize("kind", ["clustered_in_a_wide_box", "one_heavy_point", "flat_cloud", "a_few_heavy_points"])
+@pytest.mark.parametrize("kind", ["clustered_in_a_wide_box", "crowded_cubes", "one_heavy_point", "flat_cloud",
+                                  "a_few_heavy_points"])
 def test_walks_that_reach_far_match_the_oracle(device, gen, kind):
     """Cells whose walk over the grid of the points must reach many cubes away,
     or past the grid to the walls, against the half-space oracle."""
@@ -106,6 +112,25 @@ def test_walks_that_reach_far_match_the_oracle(device, gen, kind):
     box = torch.tensor(np.stack([lo, hi]), dtype=torch.float64, device=device)
     cells = torchvor.voronoi(points.to(device), box, weights=weights.to(device))
     _assert_the_oracle_cells(cells, points.numpy(), weights.numpy(), (lo, hi))
+
+
+@pytest.mark.parametrize("variant", [("TORCHVOR_POWER_NEAREST_FIRST", "0"), ("TORCHVOR_POWER_POINTS_PER_CUBE", "1"),
+                                     ("TORCHVOR_POWER_POINTS_PER_CUBE", "5")])
+def test_walk_variants_give_the_same_cells(device, gen, monkeypatch, variant):
+    """The walk's tuning options (the first cubes nearest first or in the walk's
+    order; the grid's density, 5 a cube overflowing the nearest-first points in
+    a cluster) change the order of the clips only: the cells agree to rounding."""
+    points = torch.rand(600, 3, generator=gen, dtype=torch.float64)
+    points[400:] = 0.6 + 0.03 * points[400:]
+    weights = torch.rand(600, generator=gen, dtype=torch.float64) * 3e-3
+    points, weights = points.to(device), weights.to(device)
+    default = torchvor.voronoi(points, BOX, weights=weights)
+    monkeypatch.setenv(*variant)
+    varied = torchvor.voronoi(points, BOX, weights=weights)
+    assert bool((varied.status == default.status).all())
+    assert int((default.status == CellStatus.EMPTY).sum()) > 0
+    torch.testing.assert_close(varied.volume, default.volume, rtol=1e-11, atol=1e-16)
+    torch.testing.assert_close(varied.centroid, default.centroid, rtol=0, atol=1e-12)
 
 
 def test_float32_points_are_computed_in_float64(device, gen):
@@ -355,7 +380,8 @@ def test_float32_tier(device, gen):
     """Tier 0 computes float32 points' cells in float32: within float32's guarantee
     (1e-4 relative volume) of the float64 tier's on the same points, EMPTY only
     where float64 finds them empty, or sent on (ILL_CONDITIONED: a cell rounding
-    could have emptied, TOO_MANY_PLANES, TOO_MANY_VERTICES); it takes no float64
+    could have emptied, BOUNDARY_ERROR: float predicates that disagree,
+    TOO_MANY_PLANES, TOO_MANY_VERTICES); it takes no float64
     points and computes no faces."""
     points = _cloud(2000, gen, torch.float32, device)
     weights = _weights(2000, 3.0, gen, torch.float32, device)
@@ -368,7 +394,8 @@ def test_float32_tier(device, gen):
     done = single[3] == CellStatus.SUCCESS
     empty = single[3] == CellStatus.EMPTY
     assert float((done | empty).float().mean()) > 0.9 and bool(empty.any())
-    sent_on = (CellStatus.ILL_CONDITIONED, CellStatus.TOO_MANY_PLANES, CellStatus.TOO_MANY_VERTICES)
+    sent_on = (CellStatus.ILL_CONDITIONED, CellStatus.BOUNDARY_ERROR, CellStatus.TOO_MANY_PLANES,
+               CellStatus.TOO_MANY_VERTICES)
     assert bool(sum(single[3] == code for code in sent_on)[~(done | empty)].all()), single[3].unique()
     assert bool((double[3][done] == CellStatus.SUCCESS).all()) and bool((double[3][empty] == CellStatus.EMPTY).all())
     torch.testing.assert_close(single[0][done], double[0][done], rtol=1e-4, atol=0)

@@ -81,6 +81,14 @@ struct PowerWalk {
                   double seed_w, double spread_)
       : grid(g), cube_weight_max(weight_max_of_cubes), rings(g, batch, seed), seed_weight(seed_w), spread(spread_) {}
 
+  // Passes over shells 0 and 1 (the 27 cubes around the seed's, offered
+  // already): next() goes on from shell 2, once shell 1 proves not to
+  // finish the cell.
+  TV_HD void pass_first_shells() {
+    shell = 1;
+    step_z = rings.last_step(2, 1);
+  }
+
   // The next sorted point to offer the cell of squared radius `radius2`, or
   // -1: no point left that can cut it.
   TV_HD int32_t next(double radius2) {
@@ -162,16 +170,65 @@ struct PowerWalk {
   }
 };
 
+// The points of the 27 cubes around the seed's (the walk's shells 0 and 1),
+// sorted by the distance of their power planes from the seed (negative
+// behind it): clipped nearest first, most of them make the cell's faces at
+// once and the rest miss it, where the walk's order would clip a plane that
+// a nearer one then removes. Keeps the kCapacity nearest; past that,
+// `overflow`, and every point dropped lies at least as far as the farthest
+// kept (`last()`).
+template <int kCapacity>
+struct NearestFirst {
+  float distance[kCapacity];
+  int32_t point[kCapacity];
+  int count = 0;
+  bool overflow = false;
+
+  TV_HD void add(int32_t s, float d) {
+    if (count == kCapacity) {
+      overflow = true;
+      if (!(d < distance[kCapacity - 1])) return;
+      --count;  // the farthest makes room
+    }
+    int i = count++;
+    for (; i > 0 && distance[i - 1] > d; --i) {
+      distance[i] = distance[i - 1];
+      point[i] = point[i - 1];
+    }
+    distance[i] = d;
+    point[i] = s;
+  }
+  TV_HD float last() const { return distance[count - 1]; }
+};
+
+// The points NearestFirst keeps: the 27 cubes of about 2 points each hold
+// more only in clustered clouds, where the walk offers the farther ones.
+constexpr int kNearestFirstPoints = 64;
+
+// The distance from the seed of the power plane of sorted point s, in float
+// (an order, not a predicate): (|r|^2 + w_seed - w_s) / |r|, twice the
+// plane's; -inf at the seed's position (copies first).
+template <typename io_t>
+TV_HD float nearest_first_distance(const GridView<io_t>& grid, const io_t* sorted_weights, int32_t s,
+                                   Vec3<io_t> seed, io_t seed_weight) {
+  const float x = float(grid.sorted_points[3 * s] - seed.x), y = float(grid.sorted_points[3 * s + 1] - seed.y),
+              z = float(grid.sorted_points[3 * s + 2] - seed.z);
+  const float r2 = x * x + y * y + z * z;
+  return r2 > 0.0f ? (r2 + float(seed_weight - sorted_weights[s])) / sqrt_of(r2) : -INFINITY;
+}
+
 // The power cell of the point `seed_index`: clipped by every point of its
 // walk (PowerWalk) until none is left that can cut it (the power radius of
 // security, with `weight_max` the largest weight that can cut, or the whole
 // grid). `sorted_weights`: the weights in the grid's order. `box`: lo, hi.
-// `batch`: the seed's grid. out.neighbors: the points examined.
+// `batch`: the seed's grid. `nearest_first`: the 27 cubes around the seed's
+// first, nearest first (NearestFirst). out.neighbors: the points examined.
 template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
                                           const GridView<io_t>& grid, const io_t* sorted_weights,
                                           const io_t* cube_weight_max, int64_t batch,
-                                          const io_t* box, double weight_max, T relative_tolerance) {
+                                          const io_t* box, double weight_max, T relative_tolerance,
+                                          bool nearest_first) {
   const Vec3<io_t> seed_io = load_vec3(points + 3 * seed_index);
   const Vec3<T> seed = {T(seed_io.x), T(seed_io.y), T(seed_io.z)};
   const T seed_weight = T(weights[seed_index]);
@@ -216,7 +273,35 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   const double seed_weight_exact = static_cast<double>(weights[seed_index]);
   PowerWalk<io_t> walk(grid, cube_weight_max, batch, seed_io, seed_weight_exact,
                        max_of(weight_max - seed_weight_exact, 0.0));
-  for (int32_t s = walk.next(reach_radius2()); s >= 0 && offer(s); s = walk.next(reach_radius2())) {
+  // The 27 cubes around the seed's nearest first, then the walk from shell
+  // 2 on (from the start, past the points already offered, where the cubes
+  // held more than NearestFirst keeps).
+  NearestFirst<kNearestFirstPoints> nearest;
+  const Rings<io_t>& rings = walk.rings;
+  const io_t seed_weight_io = weights[seed_index];
+  for (int32_t z = rings.low(2, 1); nearest_first && z <= rings.high(2, 1); ++z) {
+    for (int32_t y = rings.low(1, 1); y <= rings.high(1, 1); ++y) {
+      const int32_t row = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
+      const int32_t last = grid.cell_start[row + rings.high(0, 1) + 1];
+      for (int32_t s = grid.cell_start[row + rings.low(0, 1)]; s < last; ++s) {
+        nearest.add(s, nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io));
+      }
+    }
+  }
+  bool going = true;
+  for (int i = 0; i < nearest.count && going; ++i) going = offer(nearest.point[i]);
+  if (nearest_first && !nearest.overflow) walk.pass_first_shells();
+  // Past an overflow, shells 0 and 1 offer the points not kept: those at
+  // least as far as the last kept (less a margin for the distance's
+  // rounding, which may differ where it is inlined: a point offered twice
+  // gives the same plane, which then misses the cell).
+  const float kept = nearest.overflow ? nearest.last() : -INFINITY;
+  const float margin = 1e-4f * ((kept < 0.0f ? -kept : kept) + float(rings.h));
+  for (int32_t s = going ? walk.next(reach_radius2()) : -1; s >= 0; s = walk.next(reach_radius2())) {
+    if (walk.shell <= 1 && nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io) < kept - margin) {
+      continue;
+    }
+    if (!offer(s)) break;
   }
   out.neighbors = examined;
   if (out.status == kDuplicate || out.status == kEmpty) {

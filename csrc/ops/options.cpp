@@ -49,10 +49,12 @@ Options Options::from_environment() {
   if (equals(variable("TORCHVOR_CELL_START"), "box")) options.tetrahedron_start = false;
   if (equals(variable("TORCHVOR_THREAD_TRIANGLES"), "full")) options.compact_triangles = false;
   if (equals(variable("TORCHVOR_CPU_ISA"), "baseline")) options.cpu_baseline_isa = true;
+  if (equals(variable("TORCHVOR_POWER_NEAREST_FIRST"), "0")) options.power_nearest_first = false;
   if (equals(variable("TORCHVOR_TEST_BOUNDED_CELLS"), "1")) options.testing.bounded_cells = true;
   double real = 0.0;
   if (read_real("TORCHVOR_PILOT_QUANTILE", real) && real > 0.0 && real <= 1.0) options.pilot_quantile = real;
   if (read_real("TORCHVOR_POINTS_PER_CELL_SCALE", real) && real > 0.0) options.points_per_cell_scale = real;
+  if (read_real("TORCHVOR_POWER_POINTS_PER_CUBE", real) && real > 0.0) options.power_points_per_cube = real;
   long long integer = 0;
   if (read_integer("TORCHVOR_VERTEX_BALLS_K", integer) && integer >= 1) options.vertex_balls_k = integer;
   if (read_integer("TORCHVOR_SPECULATIVE_CELLS", integer) && integer >= 0) options.speculative_cells = integer;

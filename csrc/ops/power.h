@@ -39,10 +39,6 @@ constexpr int kLastDevicePowerTier = 2;
 constexpr int kDoubleDoublePowerTier = 6;
 constexpr int kLastPowerTier = 7;
 
-// Points a cube of the walk's grid: few, so that a cube's largest weight
-// bounds few points (a cube that cannot reach the cell is skipped whole).
-constexpr double kPowerPointsPerCube = 2.0;
-
 // kCompact: float32 triangles in 12 bytes (core::CompactTriangles), where
 // the backend keeps them so (Exec::kCompactTriangles: the GPU's L1 cache).
 template <int kPlanes, typename T, bool kCompact = false>
@@ -86,6 +82,7 @@ struct PowerCellFunctor {
   unsigned long long* next_face;  // kClaim: the arrays' first free row
   int64_t capacity;               // kClaim: the arrays' rows
   int64_t* face_first;            // kClaim: (M,)
+  bool nearest_first;             // Options::power_nearest_first
 
   using Cell = PowerCell<kPlanes, T, kCompact>;
   static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
@@ -107,7 +104,7 @@ struct PowerCellFunctor {
     const int64_t b = batch != nullptr ? batch[seed] : 0;
     const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
         cell, points, weights, seed, grid, sorted_weights, cube_weight_max, b, box + 6 * b, weight_max[m],
-        T(core::ClipTolerance<T>::value));
+        T(core::ClipTolerance<T>::value), nearest_first);
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
     centroid[3 * m + 1] = io_t(out.centroid.y);
@@ -240,6 +237,7 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
     functor.next_face = base.next_face;
     functor.capacity = base.capacity;
     functor.face_first = base.face_first;
+    functor.nearest_first = base.nearest_first;
     // The double-double tiers by for_each: their products must round apart.
     if constexpr (std::is_same<typename decltype(scalar)::type, core::DoubleDouble>::value) {
       Exec::HostExec::for_each(m, functor);
@@ -273,9 +271,9 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
 // (`cube_weight_max`, -inf where empty).
 template <typename Exec>
 Grid power_grid(const at::Tensor& points, const at::Tensor& weights, const c10::optional<at::Tensor>& batch,
-                int64_t clouds, at::Tensor& sorted_weights, at::Tensor& cube_weight_max) {
+                int64_t clouds, double points_per_cube, at::Tensor& sorted_weights, at::Tensor& cube_weight_max) {
   at::Tensor sorted_ids;
-  const Grid grid = build_grid<Exec>(points, batch, clouds, kPowerPointsPerCube, {}, {}, &sorted_ids);
+  const Grid grid = build_grid<Exec>(points, batch, clouds, points_per_cube, {}, {}, &sorted_ids);
   sorted_weights = weights.index_select(0, grid.sorted_index.to(at::kLong));
   cube_weight_max = at::full({grid.cell_start.size(0) - 1}, -INFINITY, weights.options());
   cube_weight_max.scatter_reduce_(0, sorted_ids.to(at::kLong), sorted_weights, "amax", /*include_self=*/true);
@@ -330,8 +328,10 @@ std::tuple<PowerCellOutputs, at::Tensor, PowerFaceOutputs> power_forward(
   if (m > 0) {
     at::Tensor sorted_weights, cube_weight_max;
     const Grid grid =
-        on_host ? power_grid<typename Exec::HostExec>(points, weights, batch, box.size(0), sorted_weights, cube_weight_max)
-                : power_grid<Exec>(points, weights, batch, box.size(0), sorted_weights, cube_weight_max);
+        on_host ? power_grid<typename Exec::HostExec>(points, weights, batch, box.size(0), tuning.power_points_per_cube,
+                                                      sorted_weights, cube_weight_max)
+                : power_grid<Exec>(points, weights, batch, box.size(0), tuning.power_points_per_cube, sorted_weights,
+                                   cube_weight_max);
     AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "power_cells", [&] {
       const auto launch = [&](auto mode) {
         constexpr PowerFaceMode kMode = decltype(mode)::value;
@@ -361,6 +361,7 @@ std::tuple<PowerCellOutputs, at::Tensor, PowerFaceOutputs> power_forward(
             next_face.defined() ? reinterpret_cast<unsigned long long*>(next_face.data_ptr<int64_t>()) : nullptr;
         functor.capacity = faces;
         functor.face_first = face_first.data_ptr<int64_t>();
+        functor.nearest_first = tuning.power_nearest_first;
         run_power_tier<Exec, scalar_t, kMode>(tier, m, tuning, functor);
       };
       if constexpr (kFaces) {
