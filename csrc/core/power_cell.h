@@ -207,14 +207,21 @@ constexpr int kNearestFirstPoints = 64;
 
 // The distance from the seed of the power plane of sorted point s, in float
 // (an order, not a predicate): (|r|^2 + w_seed - w_s) / |r|, twice the
-// plane's; -inf at the seed's position (copies first).
+// plane's; -inf at the seed's position (copies first). `scale`: the sum's
+// magnitude, (|r|^2 + |w_seed - w_s|) / |r|, on which it is rounded.
 template <typename io_t>
 TV_HD float nearest_first_distance(const GridView<io_t>& grid, const io_t* sorted_weights, int32_t s,
-                                   Vec3<io_t> seed, io_t seed_weight) {
+                                   Vec3<io_t> seed, io_t seed_weight, float& scale) {
   const float x = float(grid.sorted_points[3 * s] - seed.x), y = float(grid.sorted_points[3 * s + 1] - seed.y),
               z = float(grid.sorted_points[3 * s + 2] - seed.z);
-  const float r2 = x * x + y * y + z * z;
-  return r2 > 0.0f ? (r2 + float(seed_weight - sorted_weights[s])) / sqrt_of(r2) : -INFINITY;
+  const float r2 = x * x + y * y + z * z, shift = float(seed_weight - sorted_weights[s]);
+  if (!(r2 > 0.0f)) {
+    scale = 0.0f;
+    return -INFINITY;
+  }
+  const float length = sqrt_of(r2);
+  scale = (r2 + (shift < 0.0f ? -shift : shift)) / length;
+  return (r2 + shift) / length;
 }
 
 // The power cell of the point `seed_index`: clipped by every point of its
@@ -279,12 +286,13 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   NearestFirst<kNearestFirstPoints> nearest;
   const Rings<io_t>& rings = walk.rings;
   const io_t seed_weight_io = weights[seed_index];
+  float scale = 0.0f;
   for (int32_t z = rings.low(2, 1); nearest_first && z <= rings.high(2, 1); ++z) {
     for (int32_t y = rings.low(1, 1); y <= rings.high(1, 1); ++y) {
       const int32_t row = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
       const int32_t last = grid.cell_start[row + rings.high(0, 1) + 1];
       for (int32_t s = grid.cell_start[row + rings.low(0, 1)]; s < last; ++s) {
-        nearest.add(s, nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io));
+        nearest.add(s, nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io, scale));
       }
     }
   }
@@ -292,14 +300,14 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   for (int i = 0; i < nearest.count && going; ++i) going = offer(nearest.point[i]);
   if (nearest_first && !nearest.overflow) walk.pass_first_shells();
   // Past an overflow, shells 0 and 1 offer the points not kept: those at
-  // least as far as the last kept (less a margin for the distance's
-  // rounding, which may differ where it is inlined: a point offered twice
-  // gives the same plane, which then misses the cell).
+  // least as far as the last kept, less a margin far above the distance's
+  // rounding (which may differ where it is inlined). A point kept and
+  // offered again gives the same plane, which then misses the cell.
   const float kept = nearest.overflow ? nearest.last() : -INFINITY;
-  const float margin = 1e-4f * ((kept < 0.0f ? -kept : kept) + float(rings.h));
   for (int32_t s = going ? walk.next(reach_radius2()) : -1; s >= 0; s = walk.next(reach_radius2())) {
-    if (walk.shell <= 1 && nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io) < kept - margin) {
-      continue;
+    if (walk.shell <= 1) {
+      const float d = nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io, scale);
+      if (d + 1e-4f * scale < kept) continue;
     }
     if (!offer(s)) break;
   }
