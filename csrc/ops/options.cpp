@@ -49,7 +49,8 @@ Options Options::from_environment() {
   if (equals(variable("TORCHVOR_CELL_START"), "box")) options.tetrahedron_start = false;
   if (equals(variable("TORCHVOR_THREAD_TRIANGLES"), "full")) options.compact_triangles = false;
   if (equals(variable("TORCHVOR_CPU_ISA"), "baseline")) options.cpu_baseline_isa = true;
-  if (equals(variable("TORCHVOR_POWER_NEAREST_FIRST"), "0")) options.power_nearest_first = false;
+  if (equals(variable("TORCHVOR_POWER_NEAREST_FIRST"), "0")) options.power_nearest_first = Options::NearestFirstCells::kNone;
+  if (equals(variable("TORCHVOR_POWER_NEAREST_FIRST"), "all")) options.power_nearest_first = Options::NearestFirstCells::kAll;
   if (equals(variable("TORCHVOR_TEST_BOUNDED_CELLS"), "1")) options.testing.bounded_cells = true;
   double real = 0.0;
   if (read_real("TORCHVOR_PILOT_QUANTILE", real) && real > 0.0 && real <= 1.0) options.pilot_quantile = real;

@@ -30,8 +30,12 @@ struct Options {
   double points_per_cell_scale = 1.0;  // TORCHVOR_POINTS_PER_CELL_SCALE > 0: multiplies the grid's density rule
   int64_t graph_claimed_faces = 20;  // TORCHVOR_GRAPH_CLAIMED_FACES >= 0: voronoi_graph's room a cell in its one
                                      // pass (0: a count pass, then the faces)
-  bool power_nearest_first = true;  // TORCHVOR_POWER_NEAREST_FIRST=0: power cells offer their first 27 cubes in the
-                                    // walk's order, not nearest first (core::NearestFirst)
+  // TORCHVOR_POWER_NEAREST_FIRST=0|all: which power cells offer the 27 cubes around
+  // their seed's nearest first (core::NearestFirst): none, or the float32 cells too (by
+  // default the float64 ones only: the float32 cells of white noise, whose 27 cubes
+  // overflow the 64 kept in most warps, ran slower).
+  enum class NearestFirstCells { kNone, kFloat64, kAll };
+  NearestFirstCells power_nearest_first = NearestFirstCells::kFloat64;
   double power_points_per_cube = 2.0;  // TORCHVOR_POWER_POINTS_PER_CUBE > 0: the power cells' walk grid's density (few
                                        // a cube: a cube's largest weight bounds few points)
   int64_t cell_blocks_per_sm = 0;   // TORCHVOR_CELL_BLOCKS_PER_SM >= 1: CUDA thread-cell residency (0: the rule)

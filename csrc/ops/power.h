@@ -82,7 +82,7 @@ struct PowerCellFunctor {
   unsigned long long* next_face;  // kClaim: the arrays' first free row
   int64_t capacity;               // kClaim: the arrays' rows
   int64_t* face_first;            // kClaim: (M,)
-  bool nearest_first;             // Options::power_nearest_first
+  Options::NearestFirstCells nearest_first;  // Options::power_nearest_first (the tier's cells decide)
 
   using Cell = PowerCell<kPlanes, T, kCompact>;
   static constexpr bool kOnHeap = kPlanes > kPowerTierPlanes[kLastDevicePowerTier];
@@ -104,7 +104,9 @@ struct PowerCellFunctor {
     const int64_t b = batch != nullptr ? batch[seed] : 0;
     const core::CellIntegrals<T> out = core::compute_power_cell<io_t>(
         cell, points, weights, seed, grid, sorted_weights, cube_weight_max, b, box + 6 * b, weight_max[m],
-        T(core::ClipTolerance<T>::value), nearest_first);
+        T(core::ClipTolerance<T>::value),
+        nearest_first == Options::NearestFirstCells::kAll ||
+            (nearest_first == Options::NearestFirstCells::kFloat64 && !std::is_same<T, float>::value));
     volume[m] = io_t(out.volume);
     centroid[3 * m] = io_t(out.centroid.x);
     centroid[3 * m + 1] = io_t(out.centroid.y);
