@@ -305,7 +305,7 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   // offered again gives the same plane, which then misses the cell.
   const float kept = nearest.overflow ? nearest.last() : -INFINITY;
   for (int32_t s = going ? walk.next(reach_radius2()) : -1; s >= 0; s = walk.next(reach_radius2())) {
-    if (walk.shell <= 1) {
+    if (nearest.overflow && walk.shell <= 1) {
       const float d = nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io, scale);
       if (d + 1e-4f * scale < kept) continue;
     }
