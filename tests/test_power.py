@@ -505,3 +505,82 @@ def test_jacobian_is_the_laplacian_of_the_faces(device, gen):
         expected[i[e]] += c[e] * (x[i[e]] - x[j[e]])
     jacobian = _Jacobian.of(n, torch.stack([j, i]).to(device), c.to(device))
     torch.testing.assert_close(jacobian.apply(x.to(device)).cpu(), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_jacobian_of_the_faces_is_the_graphs(device, gen):
+    """The Jacobian from the cells' own faces (one sort and one of the reverses)
+    is bit for bit the one from graph_of_faces' symmetric graph; faces listed
+    twice or by one side only take graph_of_faces' way."""
+    from torchvor.power import PowerFaces, _Jacobian, graph_of_faces, power_cells
+
+    n = 400
+    points = _cloud(n, gen, torch.float64, device)
+    box = torch.tensor([BOX], dtype=torch.float64, device=device)
+    weights = _weights(n, 3.0, gen, torch.float64, device)
+    _, faces = power_cells(points, weights, box, None, faces=True)
+
+    def from_graph(f):
+        edge_index, area, _centroid, _walls = graph_of_faces(n, f, torch.float64)
+        j, i = edge_index
+        return _Jacobian.of(n, edge_index, area / (2 * (points[i] - points[j]).norm(dim=1)))
+
+    x = torch.randn(n, generator=gen, dtype=torch.float64).to(device)
+    fast, graph = _Jacobian.of_faces(n, faces, points), from_graph(faces)
+    assert torch.equal(fast.matrix.to_dense(), graph.matrix.to_dense())
+    assert torch.equal(fast.diagonal, graph.diagonal)
+    assert torch.equal(fast.apply(x), graph.apply(x))
+    # the rows sum to zero, and the matrix is symmetric
+    assert float(fast.apply(torch.ones_like(x)).abs().max()) <= 1e-12 * float(fast.diagonal.max())
+    dense = fast.matrix.to_dense()
+    assert torch.equal(dense, dense.T)
+    inner = torch.nonzero(faces.target >= 0).flatten()
+    one_sided = PowerFaces(*(t[torch.cat([inner[1:], torch.nonzero(faces.target < 0).flatten()])] for t in faces))
+    listed_twice = PowerFaces(*(torch.cat([t, t[inner[:5]]]) for t in faces))
+    for odd in (one_sided, listed_twice):
+        assert torch.equal(_Jacobian.of_faces(n, odd, points).matrix.to_dense(), from_graph(odd).matrix.to_dense())
+
+
+def test_conjugate_gradient_solves_the_laplacian(device, gen):
+    """The CG's solution of J x = b (b of sum 0) meets its relative residual;
+    a right-hand side of zeros gives zeros."""
+    from torchvor.power import _conjugate_gradient, _Jacobian, power_cells
+
+    n = 300
+    points = _cloud(n, gen, torch.float64, device)
+    box = torch.tensor([BOX], dtype=torch.float64, device=device)
+    _, faces = power_cells(points, torch.zeros(n, dtype=torch.float64, device=device), box, None, faces=True)
+    jacobian = _Jacobian.of_faces(n, faces, points)
+    rhs = torch.randn(n, generator=gen, dtype=torch.float64).to(device)
+    rhs = rhs - rhs.mean()
+    for rtol in (1e-2, 1e-8):
+        x = _conjugate_gradient(jacobian, rhs, rtol, 10 * n)
+        assert float((jacobian.apply(x) - rhs).norm()) <= rtol * float(rhs.norm())
+        assert abs(float(x.mean())) <= 1e-12 * float(x.abs().max())
+    assert bool((_conjugate_gradient(jacobian, torch.zeros_like(rhs), 1e-8, 100) == 0).all())
+
+
+def test_power_weights_sampled_trials_change_nothing(device, monkeypatch):
+    """Trial steps tried first on a sample of the cells (far from the solution,
+    where white noise's first steps are halved) give the weights, iterations
+    and error of full evaluations alone, and spare some of those."""
+    import torchvor.power as power
+
+    gen = torch.Generator().manual_seed(5)
+    points = _cloud(3000, gen, torch.float64, device)
+    calls = []
+    original = power.power_cells
+
+    def counted(*args, rows=None, **kwargs):
+        calls.append(rows is None)
+        return original(*args, rows=rows, **kwargs)
+
+    monkeypatch.setattr(power, "power_cells", counted)
+    results = {}
+    for least in (10**9, 0):
+        monkeypatch.setattr(power, "SAMPLE_MIN_POINTS", least)
+        calls.clear()
+        results[least] = torchvor.power_weights(points, BOX, tol=1e-9), calls.count(True), calls.count(False)
+    (plain, plain_full, plain_samples), (sampled, sampled_full, samples) = results[10**9], results[0]
+    assert plain_samples == 0 and samples > 0 and sampled_full < plain_full
+    assert sampled.iterations == plain.iterations and sampled.error == plain.error
+    assert torch.equal(sampled.weights, plain.weights)

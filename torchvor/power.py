@@ -521,33 +521,81 @@ class PowerWeights(NamedTuple):
 
 
 class _Jacobian(NamedTuple):
-    """The volumes' Jacobian in the weights, J x = diagonal * x - off x
-    (d V_i / d w_j = -c_ij, c_ij = a_ij / (2 |x_i - x_j|), for each face
-    (j, i); rows summing to zero): ``off`` the (N, N) CSR matrix of the c_ij,
-    ``diagonal`` (N,) its row sums. One sparse product a conjugate-gradient
-    iteration (gathers and a scatter of every face's term cost several)."""
-    off: torch.Tensor
+    """The volumes' Jacobian in the weights (d V_i / d w_j = -c_ij, c_ij =
+    a_ij / (2 |x_i - x_j|), for each face (j, i); rows summing to zero):
+    ``matrix`` the (N, N) CSR matrix, the row sums on its diagonal, so that a
+    conjugate-gradient iteration is one sparse product; ``diagonal`` (N,)."""
+    matrix: torch.Tensor
     diagonal: torch.Tensor
 
     @staticmethod
     def of(n: int, edge_index: torch.Tensor, coefficient: torch.Tensor) -> "_Jacobian":
+        """From each face (j, i)'s c_ij (repeated pairs add up)."""
         j, i = edge_index
-        order = torch.argsort(i * n + j)
-        rows, columns, values = i[order], j[order], coefficient[order]
-        row_start = torch.zeros(n + 1, dtype=torch.int64, device=values.device)
-        row_start[1:] = torch.bincount(rows, minlength=n).cumsum(0)
+        key, order = torch.sort(i * n + j)
+        return _Jacobian._assembled(n, key // n, key % n, coefficient[order])
+
+    @staticmethod
+    def of_faces(n: int, faces: PowerFaces, work: torch.Tensor) -> "_Jacobian":
+        """From the cells' own faces: c_ij from the mean of the two cells'
+        areas, as graph_of_faces gives them, by one sort of the faces and one
+        of their reverses (graph_of_faces where a face is listed twice or by
+        one side only)."""
+        key = torch.where(faces.target >= 0, faces.cell * n + faces.target, -1)
+        key, order = torch.sort(key)
+        first = int(torch.searchsorted(key, 0))  # the walls' faces sort first
+        key, order = key[first:], order[first:]
+        i, j, area = key // n, key % n, faces.area[order]
+        # every face listed once by each side: the reversed keys sort to the same
+        # keys, and the one that lands at m is face m's reverse
+        reverse_key, landing = torch.sort(j * n + i)
+        if key.numel() == 0 or not (torch.equal(reverse_key, key) and bool((key[1:] != key[:-1]).all())):
+            edge_index, mean_area, _centroid, _walls = graph_of_faces(n, faces, torch.float64)
+            j, i = edge_index
+            return _Jacobian.of(n, edge_index, mean_area / (2 * (work[i] - work[j]).norm(dim=1)))
+        reverse = torch.empty_like(landing).index_copy_(0, landing, torch.arange(key.numel(), device=key.device))
+        return _Jacobian._assembled(n, i, j, 0.5 * (area + area[reverse]) / (2 * (work[i] - work[j]).norm(dim=1)))
+
+    @staticmethod
+    def _assembled(n: int, rows: torch.Tensor, columns: torch.Tensor, c: torch.Tensor) -> "_Jacobian":
+        """The CSR matrix of entries -c at (rows, columns), sorted by row then
+        column, and each row's sum of c on its diagonal, in its column's place
+        (after any entry of the row's own column, whose terms cancel)."""
+        device = c.device
+        diagonal = torch.zeros(n, dtype=c.dtype, device=device).index_add(0, rows, c)
+        counts = torch.bincount(rows, minlength=n)
+        row_start = torch.zeros(n + 1, dtype=torch.int64, device=device)
+        row_start[1:] = (counts + 1).cumsum(0)
+        # an entry's place: its row's start, its rank in the row, one more past the diagonal
+        rank = torch.arange(rows.numel(), device=device) - (counts.cumsum(0) - counts)[rows]
+        place = row_start[rows] + rank + (columns >= rows)
+        before = torch.zeros(n, dtype=torch.int64, device=device).index_add(0, rows, (columns < rows).long())
+        on_diagonal = row_start[:-1] + before
+        values = torch.empty(rows.numel() + n, dtype=c.dtype, device=device)
+        values[place] = -c
+        values[on_diagonal] = diagonal
+        column = torch.empty(rows.numel() + n, dtype=torch.int64, device=device)
+        column[place] = columns
+        column[on_diagonal] = torch.arange(n, device=device)
         with warnings.catch_warnings():  # torch's notices that sparse CSR is in beta, unchecked
             warnings.filterwarnings("ignore", message="Sparse (CSR tensor support|invariant checks)")
-            off = torch.sparse_csr_tensor(row_start, columns, values, (n, n))
-        return _Jacobian(off, torch.zeros(n, dtype=values.dtype, device=values.device).index_add(0, rows, values))
+            matrix = torch.sparse_csr_tensor(row_start, column, values, (n, n))
+        return _Jacobian(matrix, diagonal)
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        return self.diagonal * x - self.off @ x
+        return self.matrix @ x
+
+
+# The conjugate gradients test their residual every CG_CHECK iterations (one
+# wait for the device each time).
+CG_CHECK = 4
 
 
 def _conjugate_gradient(jacobian: _Jacobian, rhs, rtol: float, max_iters: int):
     """J x = rhs (sum of rhs 0, J a graph Laplacian: x of mean 0) by CG with
-    the Jacobi preconditioner, to |r| <= rtol |rhs|."""
+    the Jacobi preconditioner, to |r| <= rtol |rhs| (tested every CG_CHECK
+    iterations), or until a direction finds no curvature (J's null space,
+    by rounding)."""
     diagonal = jacobian.diagonal
     inverse = torch.where(diagonal > 0, 1.0 / diagonal, torch.zeros_like(diagonal))
     x = torch.zeros_like(rhs)
@@ -556,19 +604,20 @@ def _conjugate_gradient(jacobian: _Jacobian, rhs, rtol: float, max_iters: int):
     p = z.clone()
     rz = torch.dot(r, z)
     stop = rtol * float(r.norm())
-    for _ in range(max_iters):
-        if float(r.norm()) <= stop:
+    stalled = torch.zeros((), dtype=torch.bool, device=rhs.device)
+    for iteration in range(max_iters):
+        if iteration % CG_CHECK == 0 and bool((r.norm() <= stop) | stalled):
             break
         q = jacobian.apply(p)
         curvature = torch.dot(p, q)
-        if not float(curvature) > 0:  # p in J's null space (rounding): no further descent
-            break
-        alpha = rz / curvature
-        x = x + alpha * p
-        r = r - alpha * q
-        z = inverse * r
+        descends = curvature > 0
+        stalled |= ~descends
+        alpha = torch.where(descends, rz / curvature, 0.0)
+        x.addcmul_(alpha, p)
+        r.addcmul_(alpha, q, value=-1)
+        torch.mul(inverse, r, out=z)
         rz_next = torch.dot(r, z)
-        p = z + (rz_next / rz) * p
+        p = torch.addcmul(z, torch.where(rz > 0, rz_next / rz, 0.0), p)
         rz = rz_next
     return x - x.mean()
 
@@ -578,9 +627,7 @@ def _jacobian(n: int, found, work: torch.Tensor) -> _Jacobian:
     or a periodic call's (edge_index, c)."""
     if not isinstance(found, PowerFaces):
         return _Jacobian.of(n, *found)
-    edge_index, area, _centroid, _walls = graph_of_faces(n, found, torch.float64)
-    j, i = edge_index
-    return _Jacobian.of(n, edge_index, area / (2 * (work[i] - work[j]).norm(dim=1)))
+    return _Jacobian.of_faces(n, found, work)
 
 
 def _periodic_faces(graph, work: torch.Tensor, period: torch.Tensor):
@@ -593,6 +640,14 @@ def _periodic_faces(graph, work: torch.Tensor, period: torch.Tensor):
     j, i = j[keep], i[keep]
     across = work[j] + shift[keep].double() * period - work[i]
     return torch.stack([j, i]), area[keep] / (2 * across.norm(dim=1))
+
+
+# power_weights' trial steps at a largest relative error over SAMPLE_ERROR are
+# first computed on every SAMPLE_STRIDE-th cell (clouds of SAMPLE_MIN_POINTS
+# and more): a step refused there costs a sixteenth of an evaluation.
+SAMPLE_ERROR = 0.1
+SAMPLE_STRIDE = 16
+SAMPLE_MIN_POINTS = 20_000
 
 
 def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Tensor] = None, tol: float = 1e-6,
@@ -709,6 +764,21 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         volume = torch.where(code == _EMPTY, torch.zeros_like(cells.volume), cells.volume)
         return cells, found, volume
 
+    # A trial step far from the solution (where steps are halved) is first
+    # tried on a sample of the cells: one that fails there fails on all of them.
+    sample = (torch.arange(0, n, SAMPLE_STRIDE, device=points.device)
+              if pbox is None and n >= SAMPLE_MIN_POINTS else None)
+
+    def sample_refuses(w, least, most) -> bool:
+        """Whether the sampled cells of weights w already hold a volume below
+        `least` or an error over `most` (a cell not computed refuses nothing:
+        the whole evaluation reports it)."""
+        found, _ = power_cells(work, w, box64, None, memory_budget, rows=sample, radius_hint=hint)
+        code = found.status[sample]
+        sampled = torch.where(code == _EMPTY, torch.zeros_like(found.volume[sample]), found.volume[sample])
+        refused = (sampled.min() < least) | ((sampled - target[sample]).abs().max() > most)
+        return bool(refused & ((code == int(CellStatus.SUCCESS)) | (code == _EMPTY)).all())
+
     cells, faces, volume = evaluate(weights, True)
     # Newton needs every cell nonempty (its Jacobian is then a connected graph's
     # Laplacian): a start that empties a cell is halved towards zero weights
@@ -726,16 +796,18 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         if callable(faces):
             faces = faces()
         # inexact Newton: the step's residual need only fall with the error
-        step = _conjugate_gradient(_jacobian(n, faces, work), target - volume, min(1e-2, 0.1 * error),
+        step = _conjugate_gradient(_jacobian(n, faces, work), target - volume,
+                                   min(1e-2, max(0.1 * error, 0.01 * tol / error)),
                                    10 * n + 100)
         worst = float((volume - target).abs().max())
         tau = 1.0
         while True:
             trial = weights + tau * step
-            trial_cells, trial_faces, trial_volume = evaluate(trial, True)
-            trial_worst = float((trial_volume - target).abs().max())
-            if float(trial_volume.min()) >= floor and trial_worst <= (1 - tau / 2) * worst:
-                break
+            if sample is None or error <= SAMPLE_ERROR or not sample_refuses(trial, floor, (1 - tau / 2) * worst):
+                trial_cells, trial_faces, trial_volume = evaluate(trial, True)
+                trial_worst = float((trial_volume - target).abs().max())
+                if float(trial_volume.min()) >= floor and trial_worst <= (1 - tau / 2) * worst:
+                    break
             tau /= 2
             if tau < 1e-12:
                 raise RuntimeError("torchvor.power_weights: Newton's step found no descent (the cells are "
