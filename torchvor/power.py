@@ -663,8 +663,9 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     conjugate gradients, J the power diagram's Laplacian (``d V_i / d w_j =
     -a_ij / (2 |x_i - x_j|)``, a_ij the face area), and halves the step until
     no cell shrinks below half the smallest initial or target volume and the
-    largest volume error falls by at least a factor ``1 - step / 2``. The
-    cells are computed in float64.
+    largest volume error falls by at least a factor ``1 - step / 2`` (far
+    from the solution, a trial step is first computed on every 16th cell,
+    which can refuse it). The cells are computed in float64.
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``,
