@@ -582,5 +582,7 @@ def test_power_weights_sampled_trials_change_nothing(device, monkeypatch):
         results[least] = torchvor.power_weights(points, BOX, tol=1e-9), calls.count(True), calls.count(False)
     (plain, plain_full, plain_samples), (sampled, sampled_full, samples) = results[10**9], results[0]
     assert plain_samples == 0 and samples > 0 and sampled_full < plain_full
-    assert sampled.iterations == plain.iterations and sampled.error == plain.error
-    assert torch.equal(sampled.weights, plain.weights)
+    # the same steps (the device's atomic sums round differently from call to call)
+    assert sampled.iterations == plain.iterations and sampled.error <= 1e-9 and plain.error <= 1e-9
+    scale = float(plain.weights.abs().max())
+    torch.testing.assert_close(sampled.weights, plain.weights, rtol=0, atol=1e-9 * scale)
