@@ -174,15 +174,22 @@ struct PowerWalk {
 // sorted by the distance of their power planes from the seed (negative
 // behind it): clipped nearest first, most of them make the cell's faces at
 // once and the rest miss it, where the walk's order would clip a plane that
-// a nearer one then removes. At most kCapacity points (the cells whose cubes
-// hold more keep the walk's order).
+// a nearer one then removes. Keeps the kCapacity nearest; past that,
+// `overflow`, and every point dropped lies at least as far as the farthest
+// kept (`last()`).
 template <int kCapacity>
 struct NearestFirst {
   float distance[kCapacity];
   int32_t point[kCapacity];
   int count = 0;
+  bool overflow = false;
 
   TV_HD void add(int32_t s, float d) {
+    if (count == kCapacity) {
+      overflow = true;
+      if (!(d < distance[kCapacity - 1])) return;
+      --count;  // the farthest makes room
+    }
     int i = count++;
     for (; i > 0 && distance[i - 1] > d; --i) {
       distance[i] = distance[i - 1];
@@ -191,23 +198,30 @@ struct NearestFirst {
     distance[i] = d;
     point[i] = s;
   }
+  TV_HD float last() const { return distance[count - 1]; }
 };
 
-// The points NearestFirst holds: the 27 cubes of about 2 points each hold
-// more in clustered clouds and in a few percent of white noise's cells.
+// The points NearestFirst keeps: the 27 cubes of about 2 points each hold
+// more only in clustered clouds, where the walk offers the farther ones.
 constexpr int kNearestFirstPoints = 64;
 
 // The distance from the seed of the power plane of sorted point s, in float
 // (an order, not a predicate): (|r|^2 + w_seed - w_s) / |r|, twice the
-// plane's; -inf at the seed's position (copies first).
+// plane's; -inf at the seed's position (copies first). `scale`: the sum's
+// magnitude, (|r|^2 + |w_seed - w_s|) / |r|, on which it is rounded.
 template <typename io_t>
 TV_HD float nearest_first_distance(const GridView<io_t>& grid, const io_t* sorted_weights, int32_t s,
-                                   Vec3<io_t> seed, io_t seed_weight) {
+                                   Vec3<io_t> seed, io_t seed_weight, float& scale) {
   const float x = float(grid.sorted_points[3 * s] - seed.x), y = float(grid.sorted_points[3 * s + 1] - seed.y),
               z = float(grid.sorted_points[3 * s + 2] - seed.z);
-  const float r2 = x * x + y * y + z * z;
-  if (!(r2 > 0.0f)) return -INFINITY;
-  return (r2 + float(seed_weight - sorted_weights[s])) / sqrt_of(r2);
+  const float r2 = x * x + y * y + z * z, shift = float(seed_weight - sorted_weights[s]);
+  if (!(r2 > 0.0f)) {
+    scale = 0.0f;
+    return -INFINITY;
+  }
+  const float length = sqrt_of(r2);
+  scale = (r2 + (shift < 0.0f ? -shift : shift)) / length;
+  return (r2 + shift) / length;
 }
 
 // The power cell of the point `seed_index`: clipped by every point of its
@@ -215,8 +229,7 @@ TV_HD float nearest_first_distance(const GridView<io_t>& grid, const io_t* sorte
 // security, with `weight_max` the largest weight that can cut, or the whole
 // grid). `sorted_weights`: the weights in the grid's order. `box`: lo, hi.
 // `batch`: the seed's grid. `nearest_first`: the 27 cubes around the seed's
-// first, nearest first (NearestFirst), where they hold few enough points.
-// out.neighbors: the points examined.
+// first, nearest first (NearestFirst). out.neighbors: the points examined.
 template <typename io_t, typename Cell, typename T = typename Cell::Scalar>
 TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const io_t* weights, int64_t seed_index,
                                           const GridView<io_t>& grid, const io_t* sorted_weights,
@@ -267,34 +280,35 @@ TV_HD CellIntegrals<T> compute_power_cell(Cell& cell, const io_t* points, const 
   const double seed_weight_exact = static_cast<double>(weights[seed_index]);
   PowerWalk<io_t> walk(grid, cube_weight_max, batch, seed_io, seed_weight_exact,
                        max_of(weight_max - seed_weight_exact, 0.0));
-  // The 27 cubes around the seed's nearest first where they hold at most
-  // kNearestFirstPoints points, then the walk from shell 2 on.
+  // The 27 cubes around the seed's nearest first, then the walk from shell
+  // 2 on (from the start, past the points already offered, where the cubes
+  // held more than NearestFirst keeps).
+  NearestFirst<kNearestFirstPoints> nearest;
   const Rings<io_t>& rings = walk.rings;
-  const auto first_rows = [&](auto&& visit) {  // visit(begin, end): the sorted points of each row of the 27 cubes
-    for (int32_t z = rings.low(2, 1); z <= rings.high(2, 1); ++z) {
-      for (int32_t y = rings.low(1, 1); y <= rings.high(1, 1); ++y) {
-        const int32_t row = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
-        visit(grid.cell_start[row + rings.low(0, 1)], grid.cell_start[row + rings.high(0, 1) + 1]);
+  const io_t seed_weight_io = weights[seed_index];
+  float scale = 0.0f;
+  for (int32_t z = rings.low(2, 1); nearest_first && z <= rings.high(2, 1); ++z) {
+    for (int32_t y = rings.low(1, 1); y <= rings.high(1, 1); ++y) {
+      const int32_t row = rings.offset + (z * rings.dim[1] + y) * rings.dim[0];
+      const int32_t last = grid.cell_start[row + rings.high(0, 1) + 1];
+      for (int32_t s = grid.cell_start[row + rings.low(0, 1)]; s < last; ++s) {
+        nearest.add(s, nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io, scale));
       }
     }
-  };
-  if (nearest_first) {
-    int32_t held = 0;
-    first_rows([&](int32_t begin, int32_t end) { held += end - begin; });
-    nearest_first = held <= kNearestFirstPoints;
-  }
-  NearestFirst<kNearestFirstPoints> nearest;
-  if (nearest_first) {
-    const io_t seed_weight_io = weights[seed_index];
-    first_rows([&](int32_t begin, int32_t end) {
-      for (int32_t s = begin; s < end; ++s)
-        nearest.add(s, nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io));
-    });
-    walk.pass_first_shells();
   }
   bool going = true;
   for (int i = 0; i < nearest.count && going; ++i) going = offer(nearest.point[i]);
+  if (nearest_first && !nearest.overflow) walk.pass_first_shells();
+  // Past an overflow, shells 0 and 1 offer the points not kept: those at
+  // least as far as the last kept, less a margin far above the distance's
+  // rounding (which may differ where it is inlined). A point kept and
+  // offered again gives the same plane, which then misses the cell.
+  const float kept = nearest.overflow ? nearest.last() : -INFINITY;
   for (int32_t s = going ? walk.next(reach_radius2()) : -1; s >= 0; s = walk.next(reach_radius2())) {
+    if (nearest.overflow && walk.shell <= 1) {
+      const float d = nearest_first_distance(grid, sorted_weights, s, seed_io, seed_weight_io, scale);
+      if (d + 1e-4f * scale < kept) continue;
+    }
     if (!offer(s)) break;
   }
   out.neighbors = examined;
