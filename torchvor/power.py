@@ -610,9 +610,8 @@ def _conjugate_gradient(jacobian: _Jacobian, rhs, rtol: float, max_iters: int):
             break
         q = jacobian.apply(p)
         curvature = torch.dot(p, q)
-        descends = curvature > 0
-        stalled |= ~descends
-        alpha = torch.where(descends, rz / curvature, 0.0)
+        stalled |= ~(curvature > 0)  # no step once a direction found no curvature
+        alpha = torch.where(stalled, 0.0, rz / curvature)
         x.addcmul_(alpha, p)
         r.addcmul_(alpha, q, value=-1)
         torch.mul(inverse, r, out=z)
@@ -644,7 +643,7 @@ def _periodic_faces(graph, work: torch.Tensor, period: torch.Tensor):
 
 # power_weights' trial steps at a largest relative error over SAMPLE_ERROR are
 # first computed on every SAMPLE_STRIDE-th cell (clouds of SAMPLE_MIN_POINTS
-# and more): a step refused there costs a sixteenth of an evaluation.
+# and more): a step refused there costs the sample's cells, not all of them.
 SAMPLE_ERROR = 0.1
 SAMPLE_STRIDE = 16
 SAMPLE_MIN_POINTS = 20_000
@@ -797,7 +796,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         iterations += 1
         if callable(faces):
             faces = faces()
-        # inexact Newton: the step's residual need only fall with the error
+        # inexact Newton: the step's residual need only fall with the error, and
+        # no further than a hundredth of what tol leaves
         step = _conjugate_gradient(_jacobian(n, faces, work), target - volume,
                                    min(1e-2, max(0.1 * error, 0.01 * tol / error)),
                                    10 * n + 100)
