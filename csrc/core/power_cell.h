@@ -202,7 +202,8 @@ struct NearestFirst {
 };
 
 // The points NearestFirst keeps: the 27 cubes of about 2 points each hold
-// more only in clustered clouds, where the walk offers the farther ones.
+// more in clustered clouds and a few percent of white noise's cells, where
+// the walk offers the farther ones.
 constexpr int kNearestFirstPoints = 64;
 
 // The distance from the seed of the power plane of sorted point s, in float

@@ -32,8 +32,7 @@ struct Options {
                                      // pass (0: a count pass, then the faces)
   // TORCHVOR_POWER_NEAREST_FIRST=0|all: which power cells offer the 27 cubes around
   // their seed's nearest first (core::NearestFirst): none, or the float32 cells too (by
-  // default the float64 ones only: the float32 cells of white noise, whose 27 cubes
-  // overflow the 64 kept in most warps, ran slower).
+  // default the float64 ones only: the float32 cells of white noise ran slower so).
   enum class NearestFirstCells { kNone, kFloat64, kAll };
   NearestFirstCells power_nearest_first = NearestFirstCells::kFloat64;
   double power_points_per_cube = 2.0;  // TORCHVOR_POWER_POINTS_PER_CUBE > 0: the power cells' walk grid's density (few
