@@ -73,7 +73,7 @@ TORCH_LIBRARY(torchvor, m) {
   // Power (Laguerre) cells of points with weights (N,), clipped to box
   // (B, 2, 3), for the cells `rows` (M,) int64, each walking a grid of the
   // points (of its cloud: batch), at array tier `tier` (0-7), in float64
-  // (tier 0: float32, for float32 points without faces; double-double from
+  // (tier 0: float32, for float32 points; double-double from
   // tier 6): volume (M,), centroid (M, 3),
   // second_moment (M,), status (M,) int8 (7: EMPTY), neighbors_needed (M,)
   // int32 (the points the walk examined), radius (M,) float32, and

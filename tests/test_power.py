@@ -386,8 +386,7 @@ def test_float32_tier(device, gen):
     (1e-4 relative volume) of the float64 tier's on the same points, EMPTY only
     where float64 finds them empty, or sent on (ILL_CONDITIONED: a cell rounding
     could have emptied, BOUNDARY_ERROR: float predicates that disagree,
-    TOO_MANY_PLANES, TOO_MANY_VERTICES); it takes no float64
-    points and computes no faces."""
+    TOO_MANY_PLANES, TOO_MANY_VERTICES); it takes no float64 points."""
     points = _cloud(2000, gen, torch.float32, device)
     weights = _weights(2000, 3.0, gen, torch.float32, device)
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float32, device=device)
@@ -409,8 +408,31 @@ def test_float32_tier(device, gen):
     with pytest.raises(ValueError, match="tier 0"):
         torch.ops.torchvor.power_cells.default(points.double(), weights.double(), box.double(), None, rows,
                                                weight_max, 0)
-    with pytest.raises(ValueError, match="tier 0"):
-        torch.ops.torchvor.power_cells.default(points, weights, box, None, rows, weight_max, 0, 20)
+
+
+def test_float32_faces(device, gen):
+    """Float32 points' faces computed in float32 (power_cells' float32_faces, for
+    power_weights' first steps): the float64 faces' neighbours and areas, to
+    1e-4 of a face's scale (a face that small may be missing on either side)."""
+    from torchvor.power import graph_of_faces, power_cells
+
+    n = 2000
+    points = _cloud(n, gen, torch.float32, device)
+    weights = _weights(n, 3.0, gen, torch.float32, device)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float32, device=device)
+    areas = []
+    for float32_faces in (True, False):
+        cells, faces = power_cells(points, weights, box, faces=True, float32_faces=float32_faces)
+        assert faces.area.dtype == torch.float32
+        edge_index, area, _centroid, wall_area = graph_of_faces(n, faces, torch.float32)
+        dense = torch.zeros(n * n, dtype=torch.float64, device=device)
+        dense[edge_index[1] * n + edge_index[0]] = area.double()
+        areas.append((cells, dense, wall_area.double()))
+    (single, single_area, single_walls), (double, double_area, double_walls) = areas
+    torch.testing.assert_close(single.status, double.status)
+    scale = n ** (-2.0 / 3.0)
+    assert float((single_area - double_area).abs().max()) <= 1e-4 * scale
+    assert float((single_walls - double_walls).abs().max()) <= 1e-4 * scale
 
 
 def test_power_lloyd_keeps_the_volumes_and_relaxes(device):
@@ -479,6 +501,68 @@ def test_lloyd_with_volumes_is_power_lloyd(device):
         torchvor.lloyd(points, BOX, volumes=volumes, batch=torch.zeros(200, dtype=torch.int64, device=device))
     with pytest.raises(ValueError, match="does not take callback"):
         torchvor.lloyd(points, BOX, volumes=volumes, callback=lambda *_: None)
+
+
+def test_power_weights_float32_first_steps(device, monkeypatch):
+    """Float32 points: the first steps' cells are computed in float32, which
+    changes neither the steps taken nor, beyond rounding, the error; float64
+    points never compute in float32."""
+    import torchvor.power as power
+
+    gen = torch.Generator().manual_seed(7)
+    points = _cloud(3000, gen, torch.float32, device)
+    dtypes = []
+    original = power.power_cells
+
+    def recorded(cell_points, *args, **kwargs):
+        dtypes.append(cell_points.dtype)
+        return original(cell_points, *args, **kwargs)
+
+    monkeypatch.setattr(power, "power_cells", recorded)
+    early = torchvor.power_weights(points, BOX, tol=1e-9)
+    assert torch.float32 in dtypes and torch.float64 in dtypes
+    monkeypatch.setattr(power, "SINGLE_ERROR", math.inf)
+    dtypes.clear()
+    late = torchvor.power_weights(points, BOX, tol=1e-9)
+    assert torch.float32 not in dtypes
+    assert early.iterations == late.iterations and early.error <= 1.5 * late.error
+    dtypes.clear()
+    torchvor.power_weights(points.double(), BOX, tol=1e-9)
+    assert set(dtypes) == {torch.float64}
+
+
+def test_float32_weights_predict_their_rounding(device, gen, monkeypatch):
+    """_float32_weights' prediction (the Jacobian times the rounding) is the
+    error that rounding float64 weights to float32 adds, measured on the
+    float64 cells of the rounded weights, and its shifted rounding errs no more
+    than the plain one; where the rounding decides the error, float32 points'
+    Newton stops early, warning of nothing."""
+    import torchvor.power as power
+
+    n = 3000
+    points = _cloud(n, gen, torch.float64, device)
+    solved = torchvor.power_weights(points, BOX, tol=1e-11)
+    box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
+    _cells, faces = power.power_cells(points, solved.weights, box, faces=True)
+    jacobian = power._Jacobian.of_faces(n, faces, points)
+    target = torch.full((n,), 1.0 / n, dtype=torch.float64, device=device)
+    measured = {}
+    for shifts in (1, power.ROUNDING_SHIFTS):
+        monkeypatch.setattr(power, "ROUNDING_SHIFTS", shifts)
+        rounded, predicted = power._float32_weights(jacobian, solved.weights, target)
+        assert rounded.dtype == torch.float32
+        cells = torchvor.voronoi(points, BOX, weights=rounded.double())
+        measured[shifts] = float(((cells.volume - target).abs() / target).max())
+        assert measured[shifts] > 100 * solved.error and abs(predicted - measured[shifts]) <= 0.2 * measured[shifts]
+    assert measured[shifts] <= 1.2 * measured[1]
+    single = points.float()
+    full = torchvor.power_weights(single, BOX, tol=1e-9)
+    monkeypatch.setattr(power, "ROUNDING_SHARE", 100.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        stopped = torchvor.power_weights(single, BOX, tol=1e-9)
+    # stopped at 100 roundings' error: at most 101 of them (two roundings' errors are within 1.5x)
+    assert stopped.iterations < full.iterations and stopped.error <= 1.5 * 101 * full.error
 
 
 def test_power_weights_warn_of_nothing(device, gen):

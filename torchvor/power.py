@@ -7,7 +7,7 @@ give the Voronoi diagram. A cell may lie away from its point, or be empty.
 The cells come from ``torch.ops.torchvor.power_cells`` (csrc/ops/power.h):
 each cell walks a grid of the points outwards from its own, clipped by the
 points that can reach it until the power radius of security proves it exact,
-in float64 (float32 points' cells without faces first in float32). This
+in float64 (float32 points' cells first in float32). This
 module bounds the weights that can reach each cell (_WeightBounds), retries
 the cells whose arrays overflowed (the next tier; the largest run on the CPU)
 or whose arithmetic did not resolve them (float32 to float64, float64 to
@@ -26,7 +26,7 @@ import torch
 from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells
 
 # The power_cells tiers (csrc/ops/power.h, kPowerTierPlanes): float32 cells of up
-# to 32 planes (float32 points, no faces), float64 cells of up to 64, 160, 1024,
+# to 32 planes (float32 points), float64 cells of up to 64, 160, 1024,
 # 4096 and 16384 planes, then double-double ones of 4096 and 16384 (for cells
 # from tier 5).
 FLOAT32_TIER = 0
@@ -190,13 +190,17 @@ def _power_reach(radius: torch.Tensor, spread: torch.Tensor) -> torch.Tensor:
 
 def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor] = None,
                 memory_budget: int = DEFAULT_MEMORY_BUDGET, faces=False, rows: Optional[torch.Tensor] = None,
-                radius_hint: Optional[torch.Tensor] = None) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
+                radius_hint: Optional[torch.Tensor] = None,
+                float32_faces: bool = False) -> Tuple[VoronoiCells, Optional[PowerFaces]]:
     """The power cells of every point (checked inputs; ``box`` (B, 2, 3)).
     ``rows``: (M,) int64, the points whose cells to compute (default all);
     the others come back NOT_COMPUTED (NaN outputs, no faces).
     ``radius_hint``: (N,) the radii the cells likely have (the last ones of
     points whose weights moved a little), for the first reach of their weight
     bounds (_WeightBounds). ``memory_budget`` bounds the faces of one op call.
+    ``float32_faces``: float32 points' cells with faces computed in float32
+    too where its checks pass (float64 otherwise): faces good for a Jacobian,
+    not split as exactly as voronoi_graph's.
 
     Returns :class:`VoronoiCells` (N,) (status EMPTY for an empty cell) and,
     with ``faces``, every computed cell's :class:`PowerFaces` (the cells' own
@@ -205,7 +209,7 @@ def power_cells(points: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, 
     out not to be needed. Not differentiable.
     """
     with torch.no_grad():
-        return _power_cells(points, weights, box, batch, memory_budget, faces, rows, radius_hint)
+        return _power_cells(points, weights, box, batch, memory_budget, faces, rows, radius_hint, float32_faces)
 
 
 def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torch.Tensor]) -> torch.Tensor:
@@ -223,7 +227,7 @@ def _spatial_order(points: torch.Tensor, box: torch.Tensor, batch: Optional[torc
     return torch.argsort(key)
 
 
-def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, radius_hint=None):
+def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, radius_hint=None, float32_faces=False):
     n = points.shape[0]
     device = points.device
     box, counts = _clouds(points, box, batch)
@@ -236,8 +240,9 @@ def _power_cells(points, weights, box, batch, memory_budget, faces, rows=None, r
     needed = torch.zeros(n, dtype=torch.int32, device=device)
     radius = torch.full((n,), math.nan, dtype=torch.float32, device=device)
     face_count = torch.zeros(n, dtype=torch.int32, device=device)
-    # float32 points' cells without faces start in float32 (tier 0), the others in float64
-    first_tier = FLOAT32_TIER if points.dtype == torch.float32 and not faces else FIRST_FLOAT64_TIER
+    # float32 points' cells start in float32 (tier 0) unless their faces must be float64's
+    single = points.dtype == torch.float32 and (not faces or float32_faces)
+    first_tier = FLOAT32_TIER if single else FIRST_FLOAT64_TIER
     row_tier = torch.full((n,), first_tier, dtype=torch.int64, device=device)
     row_reach = torch.zeros(n, dtype=torch.float64, device=device)  # the reach each row's bound holds for
     row_bound = torch.zeros(n, dtype=torch.float64, device=device)  # weight_max: the bound within it
@@ -508,7 +513,8 @@ class PowerWeights(NamedTuple):
 
     weights: (N,) the points' dtype: the power diagram with these weights
         gives every cell its target volume (up to ``error``); their mean is 0
-        (adding a constant changes no cell).
+        (adding a constant changes no cell; float32 weights: up to a few ulps
+        of the largest, the shift whose rounding errs least).
     iterations: Newton iterations taken.
     error: the largest relative volume error, ``max |V_i - target_i| / target_i``.
     cells: the :class:`VoronoiCells` (power cells) of the returned weights.
@@ -647,6 +653,39 @@ def _periodic_faces(graph, work: torch.Tensor, period: torch.Tensor):
 SAMPLE_ERROR = 0.1
 SAMPLE_STRIDE = 16
 SAMPLE_MIN_POINTS = 20_000
+# Float32 points' cells and faces are computed in float32 from zero weights and
+# for the trial steps from a largest relative error over SINGLE_ERROR: there
+# their rounding is noise far below the error, and the steps after them land
+# far above it.
+SINGLE_ERROR = 0.2
+# Float32 points' Newton stops once its float64 error is below ROUNDING_SHARE
+# of what rounding the weights to float32 adds (the Jacobian times the
+# rounding): further steps cannot lower the error of the weights returned.
+# The rounding is the best of ROUNDING_SHIFTS (_float32_weights).
+ROUNDING_SHARE = 0.25
+ROUNDING_SHIFTS = 8
+
+
+def _faces_in_float64(gather):
+    """The faces' gather (power_cells' faces="later"), their floating columns in float64."""
+    def gathered() -> PowerFaces:
+        found = gather()
+        return PowerFaces(found.cell, found.target, found.area.double(), found.centroid.double(),
+                          found.inertia.double())
+    return gathered
+
+
+def _float32_weights(jacobian: _Jacobian, weights: torch.Tensor, target: torch.Tensor) -> Tuple[torch.Tensor, float]:
+    """(float32 weights, the largest relative volume error their rounding adds,
+    to first order: the Jacobian times the rounding) of float64 `weights` of
+    mean 0: of the weights plus each of ROUNDING_SHIFTS constants (steps of
+    0.382 of the largest weight's ulp: each rounds the weights apart), the
+    one that adds the least."""
+    ulp = float(torch.finfo(torch.float32).eps) * float(weights.abs().max())
+    candidates = [(weights + k * 0.3819660112501051 * ulp).float() for k in range(ROUNDING_SHIFTS)]
+    errors = torch.stack([(jacobian.apply(c.double() - weights).abs() / target).max() for c in candidates])
+    best = int(torch.argmin(errors))
+    return candidates[best], float(errors[best])
 
 
 def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Tensor] = None, tol: float = 1e-6,
@@ -664,7 +703,9 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     no cell shrinks below half the smallest initial or target volume and the
     largest volume error falls by at least a factor ``1 - step / 2`` (far
     from the solution, a trial step is first computed on every 16th cell,
-    which can refuse it). The cells are computed in float64.
+    which can refuse it). The cells are computed in float64, but far from the
+    solution (a largest error over 0.2, and from zero weights) float32
+    points' cells and faces are computed in float32.
 
     Args:
         points: (N, 3) float32 or float64, CPU or CUDA, inside ``box``,
@@ -679,7 +720,8 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
             the float64 solution rounded: their cells and ``error`` are those
             of the rounded weights (the rounding leaves errors that grow with
             the weights' spread and N: about 1e-5 at 100K white-noise points,
-            3e-5 at 1M, whatever ``tol``).
+            3e-5 at 1M, whatever ``tol``), and Newton stops once its float64
+            error is under a quarter of what the rounding adds.
         k: with ``periodic``, as :func:`torchvor.voronoi` (the plain cells
             that size the padding); unused otherwise (power cells walk a
             grid of the points, no neighbour lists).
@@ -730,6 +772,9 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     work = points.double().contiguous()
     box64 = box_tensor.double()
     pbox = None if axes is None else _periodic.periodic_box(work, box64, None, axes, "power_weights")
+    rounds = points.dtype == torch.float32  # float32 weights returned, rounded from float64 ones
+    single = rounds and pbox is None  # float32 cells far from the solution
+    cold = weights is None
     if weights is None:
         weights = torch.zeros(n, dtype=torch.float64, device=points.device)
     else:
@@ -741,11 +786,18 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
 
     hint = None  # the last cells' radii
 
-    def evaluate(w, faces):
+    def evaluate(w, faces, in_float32=False):
         """(cells, faces for _jacobian (or the function that computes them) or None,
-        volumes): the power diagram of weights w."""
+        volumes (float64)): the power diagram of weights w, `in_float32` of the
+        float32 points and weights (their cells and faces in float32 where
+        they pass its checks)."""
         nonlocal hint
-        if pbox is None:
+        if in_float32:
+            cells, found = power_cells(points, w.float(), box_tensor, None, memory_budget, faces=faces and "later",
+                                       radius_hint=hint, float32_faces=True)
+            found = _faces_in_float64(found) if found is not None else None
+            hint = cells.radius
+        elif pbox is None:
             # faces gathered only for the Jacobian of a step taken and not the last
             cells, found = power_cells(work, w, box64, None, memory_budget, faces=faces and "later", radius_hint=hint)
             hint = cells.radius
@@ -762,7 +814,7 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
             first = int(torch.nonzero(failed)[0])
             raise RuntimeError(f"torchvor.power_weights: the power cell of point {first} could not be computed "
                                f"(status {CellStatus(int(code[first])).name})")
-        volume = torch.where(code == _EMPTY, torch.zeros_like(cells.volume), cells.volume)
+        volume = torch.where(code == _EMPTY, torch.zeros_like(cells.volume), cells.volume).double()
         return cells, found, volume
 
     # A trial step far from the solution (where steps are halved) is first
@@ -770,17 +822,21 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     sample = (torch.arange(0, n, SAMPLE_STRIDE, device=points.device)
               if pbox is None and n >= SAMPLE_MIN_POINTS else None)
 
-    def sample_refuses(w, least, most) -> bool:
-        """Whether the sampled cells of weights w already hold a volume below
-        `least` or an error over `most` (a cell not computed refuses nothing:
-        the whole evaluation reports it)."""
-        found, _ = power_cells(work, w, box64, None, memory_budget, rows=sample, radius_hint=hint)
+    def sample_refuses(w, least, most, in_float32) -> bool:
+        """Whether the sampled cells of weights w (`in_float32` as evaluate)
+        already hold a volume below `least` or an error over `most` (a cell
+        not computed refuses nothing: the whole evaluation reports it)."""
+        if in_float32:
+            found, _ = power_cells(points, w.float(), box_tensor, None, memory_budget, rows=sample, radius_hint=hint)
+        else:
+            found, _ = power_cells(work, w, box64, None, memory_budget, rows=sample, radius_hint=hint)
         code = found.status[sample]
-        sampled = torch.where(code == _EMPTY, torch.zeros_like(found.volume[sample]), found.volume[sample])
+        sampled = torch.where(code == _EMPTY, torch.zeros_like(found.volume[sample]), found.volume[sample]).double()
         refused = (sampled.min() < least) | ((sampled - target[sample]).abs().max() > most)
         return bool(refused & ((code == int(CellStatus.SUCCESS)) | (code == _EMPTY)).all())
 
-    cells, faces, volume = evaluate(weights, True)
+    # zero weights' error is unknown (float32 if SINGLE_ERROR allows any); a warm start's is small
+    cells, faces, volume = evaluate(weights, True, single and cold and SINGLE_ERROR < math.inf)
     # Newton needs every cell nonempty (its Jacobian is then a connected graph's
     # Laplacian): a start that empties a cell is halved towards zero weights
     # (the Voronoi diagram), whose cells are all nonempty.
@@ -792,21 +848,37 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     floor = 0.5 * min(float(volume.min()), float(target.min()))
     error = float(((volume - target).abs() / target).max())
     iterations = 0
-    while error > tol and iterations < max_iters:
+    rounding = 0.0
+    while True:
+        jacobian = None
+        if rounds:  # the weights as they would be returned, and what their rounding adds
+            if callable(faces):
+                faces = faces()
+            jacobian = _jacobian(n, faces, work)
+            result, rounding = _float32_weights(jacobian, weights, target)
+            if tol < error <= ROUNDING_SHARE * rounding and progress:
+                print(f"power_weights: error {error:.3e}, under a quarter of the {rounding:.3e} that "
+                      "rounding the weights to float32 adds: stopped")
+        converged = error <= tol or (rounds and error <= ROUNDING_SHARE * rounding)
+        if converged or iterations >= max_iters:
+            break
+        if jacobian is None:
+            if callable(faces):
+                faces = faces()
+            jacobian = _jacobian(n, faces, work)
         iterations += 1
-        if callable(faces):
-            faces = faces()
         # inexact Newton: the step's residual need only fall with the error, and
         # no further than a hundredth of what tol leaves
-        step = _conjugate_gradient(_jacobian(n, faces, work), target - volume,
-                                   min(1e-2, max(0.1 * error, 0.01 * tol / error)),
+        step = _conjugate_gradient(jacobian, target - volume, min(1e-2, max(0.1 * error, 0.01 * tol / error)),
                                    10 * n + 100)
         worst = float((volume - target).abs().max())
+        in_float32 = single and error > SINGLE_ERROR
         tau = 1.0
         while True:
             trial = weights + tau * step
-            if sample is None or error <= SAMPLE_ERROR or not sample_refuses(trial, floor, (1 - tau / 2) * worst):
-                trial_cells, trial_faces, trial_volume = evaluate(trial, True)
+            if (sample is None or error <= SAMPLE_ERROR
+                    or not sample_refuses(trial, floor, (1 - tau / 2) * worst, in_float32)):
+                trial_cells, trial_faces, trial_volume = evaluate(trial, True, in_float32)
                 trial_worst = float((trial_volume - target).abs().max())
                 if float(trial_volume.min()) >= floor and trial_worst <= (1 - tau / 2) * worst:
                     break
@@ -819,13 +891,14 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         error = float(((volume - target).abs() / target).max())
         if progress:
             print(f"power_weights: iteration {iterations}: error {error:.3e}, step {tau:g}")
-    if error > tol:
+    if not converged:
         warnings.warn(f"torchvor.power_weights: not converged after {iterations} iterations "
                       f"(error {error:.3e} > tol {tol:.1e})", RuntimeWarning, stacklevel=2)
-    result = weights.to(points.dtype)
-    if points.dtype != torch.float64:  # the cells and the error of the weights as rounded
+    if rounds:  # the cells and the error of the weights as rounded
         cells, _, volume = evaluate(result.double(), False)
         error = float(((volume - target).abs() / target).max())
+    else:
+        result = weights
     result_cells = VoronoiCells(*(t.to(points.dtype) if t.dtype == torch.float64 else t for t in cells))
     return PowerWeights(result, iterations, error, result_cells)
 

@@ -2,7 +2,7 @@
 // CUDA backends: the cells of a power diagram (core/power_cell.h) for given
 // rows, each walking a grid of the points (built here, with the largest
 // weight of each cube), one thread a cell, in float64 (float32 points'
-// cells without faces first in float32), writing their faces where asked
+// cells first in float32 where the caller asks), writing their faces where asked
 // (each cell claiming its rows).
 // torchvor/power.py bounds the weights that can reach each cell, retries the
 // cells whose arrays overflowed (the next tier), and gathers the faces.
@@ -27,8 +27,9 @@ namespace ops {
 // The planes (and twice as many vertices) a power cell may hold at each
 // tier; the tiers past kLastDevicePowerTier run on the host only, their
 // cells on the heap. Tier 0 computes float32 points' cells in float32 (the
-// compact thread cell, behind the float checks), without faces: calls with
-// float64 points or faces are refused there. Tiers 1-5 compute in float64
+// compact thread cell, behind the float checks; faces where the caller
+// takes float32's faces, as power_weights' first steps do): calls with
+// float64 points are refused there. Tiers 1-5 compute in float64
 // (the largest for the cells above a dense layer of points, with thousands
 // of faces); the last two, for the cells whose float64 integrals or clips
 // the arithmetic does not resolve (ILL_CONDITIONED, BOUNDARY_ERROR), in
@@ -251,11 +252,11 @@ void run_power_tier(int64_t tier, int64_t m, const Options& options, PowerCellFu
   };
   using Double = PowerScalar<double>;
   switch (tier) {
-    case 0:  // float32 points' cells without faces only (power_forward checks)
-      if constexpr (std::is_same<io_t, float>::value && kMode == PowerFaceMode::kCount) {
+    case 0:  // float32 points' cells only (power_forward checks)
+      if constexpr (std::is_same<io_t, float>::value) {
         run(std::integral_constant<int, kPowerTierPlanes[0]>(), PowerScalar<float>());
       } else {
-        TORCH_INTERNAL_ASSERT(false, "torchvor.power_cells: tier 0 is float32 points' cells without faces");
+        TORCH_INTERNAL_ASSERT(false, "torchvor.power_cells: tier 0 is float32 points' cells");
       }
       break;
     case 1: run(std::integral_constant<int, kPowerTierPlanes[1]>(), Double()); break;
@@ -291,8 +292,8 @@ std::tuple<PowerCellOutputs, at::Tensor, PowerFaceOutputs> power_forward(
     int64_t tier, const at::Tensor& face_offsets_in, int64_t face_room) {
   check_power_inputs(points_in, weights_in, box_in, batch_in, rows_in, weight_max_in, tier);
   TORCH_CHECK_VALUE(face_room >= 0, "torchvor.power_cells: face_room must be >= 0, got ", face_room);
-  TORCH_CHECK_VALUE(tier != kFloatPowerTier || (points_in.scalar_type() == at::kFloat && !kFaces && face_room == 0),
-                    "torchvor.power_cells: tier 0 (float32 cells) takes float32 points and computes no faces");
+  TORCH_CHECK_VALUE(tier != kFloatPowerTier || points_in.scalar_type() == at::kFloat,
+                    "torchvor.power_cells: tier 0 (float32 cells) takes float32 points");
   const Options tuning = Options::from_environment();
   // The host tiers run on the host: their tensors go there (and back).
   const bool on_host = tier > kLastDevicePowerTier && !points_in.device().is_cpu();
