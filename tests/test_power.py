@@ -508,6 +508,7 @@ def test_power_weights_float32_first_steps(device, monkeypatch):
     changes neither the steps taken nor, beyond rounding, the error; float64
     points never compute in float32."""
     import torchvor.power as power
+    import torchvor.transport as transport
 
     gen = torch.Generator().manual_seed(7)
     points = _cloud(3000, gen, torch.float32, device)
@@ -521,7 +522,7 @@ def test_power_weights_float32_first_steps(device, monkeypatch):
     monkeypatch.setattr(power, "power_cells", recorded)
     early = torchvor.power_weights(points, BOX, tol=1e-9)
     assert torch.float32 in dtypes and torch.float64 in dtypes
-    monkeypatch.setattr(power, "SINGLE_ERROR", math.inf)
+    monkeypatch.setattr(transport, "SINGLE_ERROR", math.inf)
     dtypes.clear()
     late = torchvor.power_weights(points, BOX, tol=1e-9)
     assert torch.float32 not in dtypes
@@ -538,18 +539,19 @@ def test_float32_weights_predict_their_rounding(device, gen, monkeypatch):
     than the plain one; where the rounding decides the error, float32 points'
     Newton stops early, warning of nothing."""
     import torchvor.power as power
+    import torchvor.transport as transport
 
     n = 3000
     points = _cloud(n, gen, torch.float64, device)
     solved = torchvor.power_weights(points, BOX, tol=1e-11)
     box = torch.tensor([[[0.0, 0, 0], [1, 1, 1]]], dtype=torch.float64, device=device)
     _cells, faces = power.power_cells(points, solved.weights, box, faces=True)
-    jacobian = power._Jacobian.of_faces(n, faces, points)
+    jacobian = transport._Jacobian.of_faces(n, faces, points)
     target = torch.full((n,), 1.0 / n, dtype=torch.float64, device=device)
     measured = {}
-    for shifts in (1, power.ROUNDING_SHIFTS):
-        monkeypatch.setattr(power, "ROUNDING_SHIFTS", shifts)
-        rounded, predicted = power._float32_weights(jacobian, solved.weights, target)
+    for shifts in (1, transport.ROUNDING_SHIFTS):
+        monkeypatch.setattr(transport, "ROUNDING_SHIFTS", shifts)
+        rounded, predicted = transport._float32_weights(jacobian, solved.weights, target)
         assert rounded.dtype == torch.float32
         cells = torchvor.voronoi(points, BOX, weights=rounded.double())
         measured[shifts] = float(((cells.volume - target).abs() / target).max())
@@ -557,7 +559,7 @@ def test_float32_weights_predict_their_rounding(device, gen, monkeypatch):
     assert measured[shifts] <= 1.2 * measured[1]
     single = points.float()
     full = torchvor.power_weights(single, BOX, tol=1e-9)
-    monkeypatch.setattr(power, "ROUNDING_SHARE", 100.0)
+    monkeypatch.setattr(transport, "ROUNDING_SHARE", 100.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         stopped = torchvor.power_weights(single, BOX, tol=1e-9)
@@ -577,7 +579,7 @@ def test_power_weights_warn_of_nothing(device, gen):
 def test_jacobian_is_the_laplacian_of_the_faces(device, gen):
     """(J x)_i = sum over faces (j, i) of c_ij (x_i - x_j), repeated pairs included
     (a periodic cell can meet two images of one neighbour)."""
-    from torchvor.power import _Jacobian
+    from torchvor.transport import _Jacobian
 
     n, faces = 50, 400
     j = torch.randint(0, n, (faces,), generator=gen)
@@ -595,7 +597,8 @@ def test_jacobian_of_the_faces_is_the_graphs(device, gen):
     """The Jacobian from the cells' own faces (one sort and one of the reverses)
     is bit for bit the one from graph_of_faces' symmetric graph; faces listed
     twice or by one side only take graph_of_faces' way."""
-    from torchvor.power import PowerFaces, _Jacobian, graph_of_faces, power_cells
+    from torchvor.power import PowerFaces, graph_of_faces, power_cells
+    from torchvor.transport import _Jacobian
 
     n = 400
     points = _cloud(n, gen, torch.float64, device)
@@ -635,7 +638,8 @@ def test_jacobian_of_the_faces_is_the_graphs(device, gen):
 def test_conjugate_gradient_solves_the_laplacian(device, gen):
     """The CG's solution of J x = b (b of sum 0) meets its relative residual;
     a right-hand side of zeros gives zeros."""
-    from torchvor.power import _conjugate_gradient, _Jacobian, power_cells
+    from torchvor.power import power_cells
+    from torchvor.transport import _conjugate_gradient, _Jacobian
 
     n = 300
     points = _cloud(n, gen, torch.float64, device)
@@ -656,6 +660,7 @@ def test_power_weights_sampled_trials_change_nothing(device, monkeypatch):
     where white noise's first steps are halved) give the weights, iterations
     and error of full evaluations alone, and spare some of those."""
     import torchvor.power as power
+    import torchvor.transport as transport
 
     gen = torch.Generator().manual_seed(5)
     points = _cloud(3000, gen, torch.float64, device)
@@ -669,7 +674,7 @@ def test_power_weights_sampled_trials_change_nothing(device, monkeypatch):
     monkeypatch.setattr(power, "power_cells", counted)
     results = {}
     for least in (10**9, 0):
-        monkeypatch.setattr(power, "SAMPLE_MIN_POINTS", least)
+        monkeypatch.setattr(transport, "SAMPLE_MIN_POINTS", least)
         calls.clear()
         results[least] = torchvor.power_weights(points, BOX, tol=1e-9), calls.count(True), calls.count(False)
     (plain, plain_full, plain_samples), (sampled, sampled_full, samples) = results[10**9], results[0]

@@ -8,7 +8,7 @@ from .ops import KNN, CellStatus, VoronoiCells, knn, knn_graph, voronoi  # loads
 
 from .graph import VoronoiGraph, voronoi_graph, voronoi_laplacian
 from .radius import Radius, radius, radius_graph
-from .power import PowerWeights, power_lloyd, power_weights
+from .transport import PowerWeights, power_lloyd, power_weights
 
 __all__ = ["KNN", "CellStatus", "Radius", "VoronoiCells", "VoronoiGraph", "knn", "knn_graph", "radius", "radius_graph",
            "voronoi", "voronoi_graph", "voronoi_laplacian", "PowerWeights", "power_lloyd", "power_weights"]

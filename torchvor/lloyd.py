@@ -149,7 +149,7 @@ def lloyd(
         unsupported += ["return_history"] if return_history else []
         if unsupported:
             raise ValueError(f"torchvor.lloyd: volumes (capacity-constrained Lloyd) does not take {', '.join(unsupported)}")
-        from .power import power_lloyd
+        from .transport import power_lloyd
 
         return power_lloyd(points, box, iters, volumes=volumes, k=k, progress=progress, move_tol=tol,
                            periodic=periodic)[0]
