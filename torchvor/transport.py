@@ -16,7 +16,7 @@ import torch
 
 from . import power as _power
 from .ops import DEFAULT_MEMORY_BUDGET, CellStatus, VoronoiCells
-from .power import PowerFaces, check_inputs, check_weights, graph_of_faces
+from .power import PowerFaces, check_inputs, check_weights
 
 _EMPTY = int(CellStatus.EMPTY)
 
@@ -56,24 +56,17 @@ class _Jacobian(NamedTuple):
 
     @staticmethod
     def of_faces(n: int, faces: PowerFaces, work: torch.Tensor) -> "_Jacobian":
-        """From the cells' own faces: c_ij from the mean of the two cells'
-        areas, as graph_of_faces gives them, by one sort of the faces and one
-        of their reverses (graph_of_faces where a face is listed twice or by
-        one side only)."""
-        key = torch.where(faces.target >= 0, faces.cell * n + faces.target, -1)
-        key, order = torch.sort(key)
-        first = int(torch.searchsorted(key, 0))  # the walls' faces sort first
-        key, order = key[first:], order[first:]
-        i, j, area = key // n, key % n, faces.area[order]
-        # every face listed once by each side: the reversed keys sort to the same
-        # keys, and the one that lands at m is face m's reverse
-        reverse_key, landing = torch.sort(j * n + i)
-        if key.numel() == 0 or not (torch.equal(reverse_key, key) and bool((key[1:] != key[:-1]).all())):
-            edge_index, mean_area, _centroid, _walls = graph_of_faces(n, faces, torch.float64)
-            j, i = edge_index
-            return _Jacobian.of(n, edge_index, mean_area / (2 * (work[i] - work[j]).norm(dim=1)))
-        reverse = torch.empty_like(landing).index_copy_(0, landing, torch.arange(key.numel(), device=key.device))
-        return _Jacobian._assembled(n, i, j, 0.5 * (area + area[reverse]) / (2 * (work[i] - work[j]).norm(dim=1)))
+        """From the cells' own faces: c_ij from the mean of the areas listed for
+        the pair i, j, as graph_of_faces gives them (one listing where one side
+        dropped a sliver), by one sort of the faces' (cell, neighbour) keys and
+        their reverses."""
+        between = faces.target >= 0
+        i, j, area = faces.cell[between], faces.target[between], faces.area[between]
+        keys, order = torch.sort(torch.cat([i * n + j, j * n + i]))
+        keys, inverse, listings = torch.unique_consecutive(keys, return_inverse=True, return_counts=True)
+        total = area.new_zeros(keys.numel()).index_add_(0, inverse, area.repeat(2)[order])
+        rows, columns = keys // n, keys % n
+        return _Jacobian._assembled(n, rows, columns, total / listings / (2 * (work[rows] - work[columns]).norm(dim=1)))
 
     @staticmethod
     def _assembled(n: int, rows: torch.Tensor, columns: torch.Tensor, c: torch.Tensor) -> "_Jacobian":
@@ -199,6 +192,14 @@ def _float32_weights(jacobian: _Jacobian, weights: torch.Tensor, target: torch.T
     errors = torch.stack([(jacobian.apply(c.double() - weights).abs() / target).max() for c in candidates])
     best = int(torch.argmin(errors))
     return candidates[best], float(errors[best])
+
+
+def _rounding_decides(jacobian: _Jacobian, weights: torch.Tensor, target: torch.Tensor, error: float) -> bool:
+    """Whether `error` is under ROUNDING_SHARE of what the best rounding of the
+    weights to float32 adds (_float32_weights), tested first on the plain
+    rounding's (no less: one sparse product)."""
+    plain = float((jacobian.apply(weights.float().double() - weights).abs() / target).max())
+    return error <= ROUNDING_SHARE * plain and error <= ROUNDING_SHARE * _float32_weights(jacobian, weights, target)[1]
 
 
 def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Tensor] = None, tol: float = 1e-6,
@@ -361,24 +362,18 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
     floor = 0.5 * min(float(volume.min()), float(target.min()))
     error = float(((volume - target).abs() / target).max())
     iterations = 0
-    rounding = 0.0
-    while True:
-        jacobian = None
-        if rounds:  # the weights as they would be returned, and what their rounding adds
-            if callable(faces):
-                faces = faces()
-            jacobian = _jacobian(n, faces, work)
-            result, rounding = _float32_weights(jacobian, weights, target)
-            if tol < error <= ROUNDING_SHARE * rounding and progress:
-                print(f"power_weights: error {error:.3e}, under a quarter of the {rounding:.3e} that "
-                      "rounding the weights to float32 adds: stopped")
-        converged = error <= tol or (rounds and error <= ROUNDING_SHARE * rounding)
-        if converged or iterations >= max_iters:
+    jacobian = None  # of the current weights' faces, once built
+    converged = error <= tol
+    while not converged and iterations < max_iters:
+        if callable(faces):
+            faces = faces()
+        jacobian = _jacobian(n, faces, work)
+        if rounds and _rounding_decides(jacobian, weights, target, error):
+            if progress:
+                print(f"power_weights: error {error:.3e}, under a quarter of what rounding the weights to "
+                      "float32 adds: stopped")
+            converged = True
             break
-        if jacobian is None:
-            if callable(faces):
-                faces = faces()
-            jacobian = _jacobian(n, faces, work)
         iterations += 1
         # inexact Newton: the step's residual need only fall with the error, and
         # no further than a hundredth of what tol leaves
@@ -402,12 +397,17 @@ def power_weights(points: torch.Tensor, box=None, *, volumes: Optional[torch.Ten
         weights = trial - trial.mean()
         cells, faces, volume = trial_cells, trial_faces, trial_volume
         error = float(((volume - target).abs() / target).max())
+        converged = error <= tol
         if progress:
             print(f"power_weights: iteration {iterations}: error {error:.3e}, step {tau:g}")
     if not converged:
         warnings.warn(f"torchvor.power_weights: not converged after {iterations} iterations "
                       f"(error {error:.3e} > tol {tol:.1e})", RuntimeWarning, stacklevel=2)
     if rounds:  # the cells and the error of the weights as rounded
+        if jacobian is None:
+            jacobian = _jacobian(n, faces() if callable(faces) else faces, work)
+        # (the last step's Jacobian: the weights moved by less than its error since)
+        result, _ = _float32_weights(jacobian, weights, target)
         cells, _, volume = evaluate(result.double(), False)
         error = float(((volume - target).abs() / target).max())
     else:
