@@ -91,7 +91,8 @@ class _Jacobian(NamedTuple):
         column[on_diagonal] = torch.arange(n, device=device)
         with warnings.catch_warnings():  # torch's notices that sparse CSR is in beta, unchecked
             warnings.filterwarnings("ignore", message="Sparse (CSR tensor support|invariant checks)")
-            matrix = torch.sparse_csr_tensor(row_start, column, values, (n, n))
+            index = torch.int32 if values.numel() < 2**31 else torch.int64  # int32: a lighter product
+            matrix = torch.sparse_csr_tensor(row_start.to(index), column.to(index), values, (n, n))
         return _Jacobian(matrix, diagonal)
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
